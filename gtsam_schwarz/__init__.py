@@ -1,0 +1,22 @@
+"""gtsam-schwarz: pose-graph Gauss–Newton for GTSAM with two-level overlapping Schwarz (GDSW) PCG."""
+
+from .coarse import CoarseSpace, gdsw_coarse_space
+from .decomposition import Decomposition, GraphStructure, segment_partition, segments
+from .interface import Interface, find_interface
+from .krylov import CGInfo, pcg
+from .linear_system import KeyMap, LinearSystem, export_linear_system
+from .local_solvers import BlockDiagonalSolver, IndexSets, SingularLocalMatrixError
+from .optimizer import LINEAR_SOLVERS, SchwarzOptimizer, SchwarzParams
+from .preconditioners import (PRECONDITIONERS, AdditiveSchwarz, BlockJacobi, CoarseCorrection,
+                              Identity, Jacobi, TwoLevelSchwarz, make_preconditioner)
+from .problems import SquareLoops, square_loops, square_trajectory
+
+__all__ = [
+    "AdditiveSchwarz", "BlockDiagonalSolver", "BlockJacobi", "CGInfo", "CoarseCorrection",
+    "CoarseSpace", "Decomposition", "GraphStructure", "Identity", "IndexSets", "Interface",
+    "Jacobi", "KeyMap", "LINEAR_SOLVERS", "LinearSystem", "PRECONDITIONERS", "SchwarzOptimizer",
+    "SchwarzParams", "SingularLocalMatrixError", "SquareLoops", "TwoLevelSchwarz",
+    "export_linear_system", "find_interface", "gdsw_coarse_space", "make_preconditioner", "pcg",
+    "segment_partition", "segments", "square_loops", "square_trajectory",
+]
+__version__ = "0.1.0"

@@ -1,0 +1,110 @@
+"""Preconditioned conjugate gradients with residual history and Lanczos eigenvalue estimates.
+
+The CG coefficients α_k, β_k define the Lanczos tridiagonal matrix T of the preconditioned
+operator M⁻¹A; its extreme eigenvalues estimate λmin/λmax (and κ = λmax/λmin) as reported in the
+paper's tables.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.linalg import eigvalsh_tridiagonal
+
+
+@dataclass
+class CGInfo:
+    iterations: int
+    converged: bool
+    residuals: list[float] = field(default_factory=list)  # ‖r_k‖₂ / ‖b‖₂, k = 0..iterations
+    lambda_min: float = float("nan")
+    lambda_max: float = float("nan")
+    reason: str = ""
+
+    @property
+    def condition(self) -> float:
+        return self.lambda_max / self.lambda_min if self.lambda_min > 0 else float("inf")
+
+
+def lanczos_extremes(alphas, betas) -> tuple[float, float]:
+    """Extreme eigenvalues of the Lanczos matrix built from CG step lengths α and β ratios."""
+    k = len(alphas)
+    if k == 0:
+        return float("nan"), float("nan")
+    a = np.asarray(alphas, dtype=float)
+    bt = np.asarray(betas[: k - 1], dtype=float)
+    diag = 1.0 / a
+    diag[1:] += bt / a[:-1]
+    off = np.sqrt(np.maximum(bt, 0.0)) / a[:-1]
+    ev = eigvalsh_tridiagonal(diag, off) if k > 1 else diag
+    return float(ev.min()), float(ev.max())
+
+
+def _apply(op, x):
+    if op is None:
+        return x.copy()
+    if hasattr(op, "matvec"):
+        return op.matvec(x)
+    return op(x)
+
+
+def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
+        callback=None) -> tuple[np.ndarray, CGInfo]:
+    """Solve A x = b (A SPD) by CG preconditioned with M ≈ A⁻¹ (SPD).
+
+    Stops when ‖b − A x‖₂ ≤ tol·‖b‖₂ (the paper's relative tolerance) or after ``maxiter``
+    iterations (default: the dimension). Returns x and a :class:`CGInfo`.
+    """
+    b = np.asarray(b, dtype=float)
+    n = b.shape[0]
+    maxiter = n if maxiter is None else int(maxiter)
+    x = np.zeros(n) if x0 is None else np.array(x0, dtype=float)
+    r = b - A @ x if x0 is not None else b.copy()
+    bnorm = float(np.linalg.norm(b))
+    info = CGInfo(iterations=0, converged=False)
+    if bnorm == 0.0:
+        info.converged, info.reason = True, "zero right-hand side"
+        info.residuals.append(0.0)
+        return np.zeros(n), info
+    rnorm = float(np.linalg.norm(r))
+    info.residuals.append(rnorm / bnorm)
+    if rnorm <= tol * bnorm:
+        info.converged, info.reason = True, "initial guess"
+        return x, info
+    z = _apply(M, r)
+    rz = float(r @ z)
+    p = z.copy()
+    alphas, betas = [], []
+    for k in range(1, maxiter + 1):
+        if not np.isfinite(rz) or rz <= 0.0:
+            info.reason = "preconditioner not positive definite (rᵀM⁻¹r ≤ 0)"
+            break
+        Ap = A @ p
+        pAp = float(p @ Ap)
+        if not np.isfinite(pAp) or pAp <= 0.0:
+            info.reason = "matrix not positive definite (pᵀAp ≤ 0)"
+            break
+        alpha = rz / pAp
+        x += alpha * p
+        r -= alpha * Ap
+        alphas.append(alpha)
+        rnorm = float(np.linalg.norm(r))
+        info.residuals.append(rnorm / bnorm)
+        info.iterations = k
+        if callback is not None:
+            callback(x)
+        if rnorm <= tol * bnorm:
+            info.converged, info.reason = True, "relative residual below tolerance"
+            break
+        z = _apply(M, r)
+        rz_new = float(r @ z)
+        beta = rz_new / rz
+        betas.append(beta)
+        rz = rz_new
+        p *= beta
+        p += z
+    else:
+        info.reason = f"iteration limit {maxiter} reached"
+    info.lambda_min, info.lambda_max = lanczos_extremes(alphas, betas)
+    return x, info

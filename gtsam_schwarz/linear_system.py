@@ -1,0 +1,129 @@
+"""Export a linearized GTSAM graph to scipy (H = JᵀJ, gradient) and map steps back to gtsam.
+
+GTSAM whitens every factor, so ``GaussianFactorGraph.sparseJacobian_()`` gives the whitened
+Jacobian J and right-hand side b (= minus the whitened residual) of ½‖J δ − b‖². The Gauss–Newton
+matrix is A = JᵀJ and the gradient of the objective is g = −Jᵀb (paper Sec. 2, Eq. hgn).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+import scipy.sparse as sp
+
+# Tangent coordinates that are translations, per gtsam value type (GTSAM's own order:
+# Pose2 = (x, y, θ), Pose3 = (ω, v): rotation first, then translation).
+_TRANSLATION_DOFS = {3: (0, 1), 6: (3, 4, 5)}
+
+
+@dataclass(frozen=True)
+class KeyMap:
+    """Map from gtsam keys (sorted, as GTSAM orders columns) to contiguous dof ranges."""
+
+    keys: np.ndarray  # uint64, sorted ascending
+    dims: np.ndarray  # int64, dimension of each variable
+    offsets: np.ndarray  # int64, len(keys)+1, first dof of each variable
+
+    @classmethod
+    def from_graph(cls, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> "KeyMap":
+        """Keys of ``graph`` in GTSAM's natural (sorted) order, dimensions from ``values``."""
+        keys = graph.keyVector()
+        all_dims = values.dims()
+        missing = [k for k in keys if k not in all_dims]
+        if missing:
+            raise KeyError(f"graph key {gtsam.DefaultKeyFormatter(missing[0])} has no initial value")
+        return cls.from_dims(keys, [all_dims[k] for k in keys])
+
+    @classmethod
+    def from_dims(cls, keys, dims) -> "KeyMap":
+        keys = np.asarray(keys, dtype=np.uint64)
+        dims = np.asarray(dims, dtype=np.int64)
+        order = np.argsort(keys, kind="stable")
+        keys, dims = keys[order], dims[order]
+        offsets = np.zeros(len(keys) + 1, dtype=np.int64)
+        np.cumsum(dims, out=offsets[1:])
+        return cls(keys=keys, dims=dims, offsets=offsets)
+
+    @property
+    def dim(self) -> int:
+        return int(self.offsets[-1])
+
+    @property
+    def size(self) -> int:
+        return len(self.keys)
+
+    def dof_to_variable(self) -> np.ndarray:
+        """Index of the variable that owns each dof."""
+        return np.repeat(np.arange(self.size), self.dims)
+
+    def translation_mask(self) -> np.ndarray:
+        """True for dofs that are translations (used by the coarse space without rotation)."""
+        mask = np.ones(self.dim, dtype=bool)
+        for d, tdofs in _TRANSLATION_DOFS.items():
+            first = self.offsets[:-1][self.dims == d]
+            if len(first):
+                mask[(first[:, None] + np.arange(d)).ravel()] = False
+                mask[(first[:, None] + np.asarray(tdofs)).ravel()] = True
+        return mask
+
+    def to_vector_values(self, x: np.ndarray) -> gtsam.VectorValues:
+        """Numpy step → ``gtsam.VectorValues`` (gtsam offers no bulk constructor: one insert per key)."""
+        x = np.asarray(x, dtype=float)
+        if x.shape != (self.dim,):
+            raise ValueError(f"step has shape {x.shape}, expected ({self.dim},)")
+        vv = gtsam.VectorValues()
+        for key, lo, hi in zip(self.keys.tolist(), self.offsets[:-1].tolist(), self.offsets[1:].tolist()):
+            vv.insert(key, x[lo:hi])
+        return vv
+
+    def retract(self, values: gtsam.Values, x: np.ndarray) -> gtsam.Values:
+        """values ⊕ x, GTSAM's retraction per variable."""
+        return values.retract(self.to_vector_values(x))
+
+
+@dataclass
+class LinearSystem:
+    """Whitened Gauss–Newton system H δ = −g of one linearization point."""
+
+    H: sp.csr_matrix  # JᵀJ, symmetric positive (semi)definite
+    g: np.ndarray  # gradient Jᵀ W r = −Jᵀb
+    J: sp.csr_matrix
+    b: np.ndarray
+
+    @property
+    def error(self) -> float:
+        """½‖b‖², equal to graph.error(values) at the linearization point."""
+        return 0.5 * float(self.b @ self.b)
+
+    @property
+    def rhs(self) -> np.ndarray:
+        return -self.g
+
+
+def export_linear_system(lin: gtsam.GaussianFactorGraph, keymap: KeyMap) -> LinearSystem:
+    """``GaussianFactorGraph`` → scipy (J, b, H, g) from one ``sparseJacobian_`` call, no per-factor loop.
+
+    ``sparseJacobian_`` returns 1-based (row, col, value) triplets in GTSAM's natural key order;
+    column ``n+1`` holds the right-hand side b.
+    """
+    n = keymap.dim
+    S = lin.sparseJacobian_()
+    if S.size == 0:
+        return LinearSystem(sp.csr_matrix((n, n)), np.zeros(n), sp.csr_matrix((0, n)), np.zeros(0))
+    rows = S[0].astype(np.int64) - 1
+    cols = S[1].astype(np.int64) - 1
+    vals = S[2]
+    if cols.max() > n:
+        raise ValueError(f"linearization has {cols.max()} columns, key map expects {n}: keys differ")
+    m = int(rows.max()) + 1
+    is_rhs = cols == n
+    J = sp.csr_matrix((vals[~is_rhs], (rows[~is_rhs], cols[~is_rhs])), shape=(m, n))
+    b = np.bincount(rows[is_rhs], weights=vals[is_rhs], minlength=m)
+    Jt = J.T.tocsr()
+    H = (Jt @ J).tocsr()
+    H.sum_duplicates()
+    H.sort_indices()
+    g = -(Jt @ b)
+    return LinearSystem(H=H, g=g, J=J, b=b)

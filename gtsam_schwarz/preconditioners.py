@@ -1,0 +1,146 @@
+"""Preconditioners M⁻¹ ≈ A⁻¹ for CG, each built once per linear system.
+
+Like pyamg, every preconditioner offers ``aspreconditioner()`` → scipy ``LinearOperator``; like
+FROSch, Schwarz operators add up: two-level = one-level overlapping operator + coarse operator.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import LinearOperator
+
+from .coarse import CoarseSpace, gdsw_coarse_space
+from .decomposition import Decomposition
+from .interface import find_interface
+from .local_solvers import BlockDiagonalSolver, IndexSets, SingularLocalMatrixError, factorize
+
+PRECONDITIONERS = ("none", "jacobi", "block-jacobi", "one-level", "gdsw", "gdsw-norot")
+
+
+class Preconditioner:
+    """Base: an SPD operator x ↦ M⁻¹x of dimension n."""
+
+    n: int
+
+    def matvec(self, x: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def __call__(self, x):
+        return self.matvec(x)
+
+    def __add__(self, other: "Preconditioner") -> "Preconditioner":
+        return SumOperator([self, other])
+
+    def aspreconditioner(self) -> LinearOperator:
+        return LinearOperator((self.n, self.n), matvec=self.matvec, rmatvec=self.matvec, dtype=float)
+
+    def todense(self) -> np.ndarray:
+        """M⁻¹ as a dense matrix (for tests on small problems)."""
+        return np.column_stack([self.matvec(e) for e in np.eye(self.n)])
+
+
+class SumOperator(Preconditioner):
+    """Additive combination Σ_k M_k⁻¹."""
+
+    def __init__(self, parts):
+        self.parts = list(parts)
+        self.n = self.parts[0].n
+
+    def matvec(self, x):
+        y = self.parts[0].matvec(x)
+        for p in self.parts[1:]:
+            y += p.matvec(x)
+        return y
+
+
+class Identity(Preconditioner):
+    def __init__(self, A):
+        self.n = A.shape[0]
+
+    def matvec(self, x):
+        return np.array(x, dtype=float, copy=True)
+
+
+class Jacobi(Preconditioner):
+    """Point Jacobi: diag(A)⁻¹."""
+
+    def __init__(self, A):
+        d = np.asarray(sp.csr_matrix(A).diagonal(), dtype=float)
+        if np.any(d <= 0) or not np.all(np.isfinite(d)):
+            raise SingularLocalMatrixError("Jacobi: the matrix has a non-positive diagonal entry")
+        self.n = len(d)
+        self.inv_diag = 1.0 / d
+
+    def matvec(self, x):
+        return self.inv_diag * x
+
+
+class AdditiveSchwarz(Preconditioner):
+    """One-level additive Schwarz Σ_i R_iᵀ A_i⁻¹ R_i, A_i = R_i A R_iᵀ (paper Eq. OS-preconditioner)."""
+
+    def __init__(self, A, sets: IndexSets):
+        self.n = A.shape[0]
+        self.sets = sets
+        self.solver = BlockDiagonalSolver(A, sets)
+
+    def matvec(self, x):
+        return self.solver.matvec(x)
+
+
+class BlockJacobi(AdditiveSchwarz):
+    """One block per variable (pose): Schwarz with nonoverlapping single-pose subdomains."""
+
+    def __init__(self, A, offsets: np.ndarray):
+        sizes = np.diff(offsets)
+        super().__init__(A, IndexSets(indices=np.arange(int(offsets[-1])), ptr=np.asarray(offsets), n=A.shape[0]))
+        self.block_sizes = sizes
+
+
+class CoarseCorrection(Preconditioner):
+    """R_0ᵀ A_0⁻¹ R_0 with R_0 = Φᵀ and A_0 = Φᵀ A Φ."""
+
+    def __init__(self, coarse: CoarseSpace):
+        self.coarse = coarse
+        self.n = coarse.Phi.shape[0]
+        self.PhiT = coarse.Phi.T.tocsr()
+        self._solve = factorize(coarse.A0, "the coarse matrix A_0")
+
+    def matvec(self, x):
+        if self.coarse.size == 0:
+            return np.zeros(self.n)
+        return self.coarse.Phi @ self._solve(self.PhiT @ x)
+
+
+class TwoLevelSchwarz(SumOperator):
+    """Two-level additive Schwarz: one-level operator + GDSW coarse correction (paper Sec. 3.3)."""
+
+    def __init__(self, A, decomposition: Decomposition, dof_mask: np.ndarray | None = None):
+        self.decomposition = decomposition
+        self.interface = find_interface(decomposition)
+        self.coarse_space = gdsw_coarse_space(A, decomposition, self.interface, dof_mask)
+        self.one_level = AdditiveSchwarz(A, decomposition.index_sets(overlapping=True))
+        super().__init__([self.one_level, CoarseCorrection(self.coarse_space)])
+
+
+def make_preconditioner(name: str, A, decomposition: Decomposition | None = None,
+                        translation_mask: np.ndarray | None = None) -> Preconditioner:
+    """Build the preconditioner called ``name`` (one of :data:`PRECONDITIONERS`) for matrix A."""
+    if name == "none":
+        return Identity(A)
+    if name == "jacobi":
+        return Jacobi(A)
+    if name == "block-jacobi":
+        if decomposition is None:
+            raise ValueError("block-jacobi needs the variables' dof ranges (a decomposition)")
+        return BlockJacobi(A, decomposition.structure.offsets)
+    if name in ("one-level", "gdsw", "gdsw-norot"):
+        if decomposition is None:
+            raise ValueError(f"{name} needs a decomposition")
+        if name == "one-level":
+            return AdditiveSchwarz(A, decomposition.index_sets(overlapping=True))
+        if name == "gdsw":
+            return TwoLevelSchwarz(A, decomposition)
+        mask = translation_mask if translation_mask is not None else np.ones(A.shape[0], dtype=bool)
+        return TwoLevelSchwarz(A, decomposition, dof_mask=mask)
+    raise ValueError(f"unknown preconditioner {name!r}; choose one of {', '.join(PRECONDITIONERS)}")

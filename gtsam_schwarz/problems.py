@@ -1,0 +1,86 @@
+"""The paper's model problem: a robot driving L loops around the unit square (paper Sec. 4)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+
+@dataclass
+class SquareLoops:
+    graph: gtsam.NonlinearFactorGraph
+    initial: gtsam.Values  # dead reckoning from the noisy odometry
+    ground_truth: gtsam.Values
+    loops: int
+    points_per_side: int
+    sigma: float
+    seed: int
+
+    @property
+    def poses(self) -> int:
+        return 4 * self.points_per_side * self.loops + 1
+
+
+def square_trajectory(loops: int, points_per_side: int) -> np.ndarray:
+    """Ground-truth poses (x, y, θ): unit steps of 1/P along the square, left turn at each corner.
+
+    Pose t has the heading of the side it starts (θ wrapped to (−π, π]); pose 4Pk is the origin.
+    """
+    P = points_per_side
+    t = np.arange(4 * P * loops + 1)
+    side = (t // P) % 4
+    frac = (t % P) / P
+    corners = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    direction = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
+    xy = corners[side] + frac[:, None] * direction[side]
+    theta = np.array([0.0, np.pi / 2, np.pi, -np.pi / 2])[side]
+    return np.column_stack([xy, theta])
+
+
+def square_loops(loops: int, points_per_side: int, sigma: float = 0.01, seed: int = 0,
+                 loop_sigma: float | None = None, odometry_information: float = 20.0,
+                 loop_information: float = 100.0, prior_information: float = 100.0) -> SquareLoops:
+    """The paper's unit-square multi-loop pose graph.
+
+    Odometry edges (t, t+1) measure the true relative pose plus N(0, σ²) noise on (x, y, θ);
+    each return to the start adds a loop closure (4P(k−1), 4Pk) with noise ``loop_sigma``
+    (default σ·√(20/100), matching the weights). Weights are W = 20·I (odometry), 100·I (loop
+    closure); a prior on pose 0 removes the gauge (its weight does not change the optimum).
+    """
+    if loops < 1 or points_per_side < 1:
+        raise ValueError("loops and points_per_side must be >= 1")
+    rng = np.random.default_rng(seed)
+    P = points_per_side
+    truth = square_trajectory(loops, P)
+    n = len(truth)
+    steps = n - 1
+    # true odometry: 1/P forward, +90° at the step that arrives at a corner
+    turn = np.where((np.arange(1, n) % P) == 0, np.pi / 2, 0.0)
+    odo = np.column_stack([np.full(steps, 1.0 / P), np.zeros(steps), turn])
+    odo_meas = odo + sigma * rng.standard_normal(odo.shape)
+    closures = np.arange(1, loops + 1) * 4 * P
+    ls = sigma * np.sqrt(odometry_information / loop_information) if loop_sigma is None else loop_sigma
+    loop_meas = ls * rng.standard_normal((loops, 3))
+
+    odo_noise = gtsam.noiseModel.Isotropic.Precision(3, odometry_information)
+    loop_noise = gtsam.noiseModel.Isotropic.Precision(3, loop_information)
+    prior_noise = gtsam.noiseModel.Isotropic.Precision(3, prior_information)
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*truth[0]), prior_noise))
+    for t, (dx, dy, dth) in enumerate(odo_meas.tolist()):
+        graph.add(gtsam.BetweenFactorPose2(t, t + 1, gtsam.Pose2(dx, dy, dth), odo_noise))
+    for j, (dx, dy, dth) in zip(closures.tolist(), loop_meas.tolist()):
+        graph.add(gtsam.BetweenFactorPose2(j - 4 * P, j, gtsam.Pose2(dx, dy, dth), loop_noise))
+
+    initial, ground_truth = gtsam.Values(), gtsam.Values()
+    pose = gtsam.Pose2(*truth[0])
+    initial.insert(0, pose)
+    for t, (dx, dy, dth) in enumerate(odo_meas.tolist()):
+        pose = pose.compose(gtsam.Pose2(dx, dy, dth))
+        initial.insert(t + 1, pose)
+    for t, (x, y, th) in enumerate(truth.tolist()):
+        ground_truth.insert(t, gtsam.Pose2(x, y, th))
+    return SquareLoops(graph=graph, initial=initial, ground_truth=ground_truth, loops=loops,
+                       points_per_side=P, sigma=sigma, seed=seed)
