@@ -1,5 +1,6 @@
 """gtsam-schwarz: pose-graph Gauss–Newton for GTSAM with two-level overlapping Schwarz (GDSW) PCG."""
 
+from .bars import BarChain, bar_chain
 from .coarse import CoarseSpace, gdsw_coarse_space
 from .decomposition import Decomposition, GraphStructure, segment_partition, segments
 from .interface import Interface, find_interface
@@ -12,11 +13,11 @@ from .preconditioners import (PRECONDITIONERS, AdditiveSchwarz, BlockJacobi, Coa
 from .problems import SquareLoops, square_loops, square_trajectory
 
 __all__ = [
-    "AdditiveSchwarz", "BlockDiagonalSolver", "BlockJacobi", "CGInfo", "CoarseCorrection",
+    "AdditiveSchwarz", "BarChain", "BlockDiagonalSolver", "BlockJacobi", "CGInfo", "CoarseCorrection",
     "CoarseSpace", "Decomposition", "GraphStructure", "Identity", "IndexSets", "Interface",
     "Jacobi", "KeyMap", "LINEAR_SOLVERS", "LinearSystem", "PRECONDITIONERS", "SchwarzOptimizer",
     "SchwarzParams", "SingularLocalMatrixError", "SquareLoops", "TwoLevelSchwarz",
-    "export_linear_system", "find_interface", "gdsw_coarse_space", "make_preconditioner", "pcg",
+    "bar_chain", "export_linear_system", "find_interface", "gdsw_coarse_space", "make_preconditioner", "pcg",
     "segment_partition", "segments", "square_loops", "square_trajectory",
 ]
 __version__ = "0.1.0"

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg as la
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
@@ -65,10 +66,24 @@ def block_diagonal(A: sp.spmatrix, sets: IndexSets) -> sp.csr_matrix:
     return sp.csr_matrix((C.data[keep], (C.row[keep], C.col[keep])), shape=(m, m))
 
 
+DENSE_FACTOR_MAX = 4000  # a matrix this small and at least 10 % full is factorized densely
+
+
 def factorize(K: sp.spmatrix, what: str = "local matrix"):
-    """Sparse LU of a symmetric matrix; returns a callable solve(rhs). Clear error if singular."""
-    if K.shape[0] == 0:
+    """Factorize a symmetric positive definite matrix; returns a callable solve(rhs).
+
+    Small, fairly dense matrices (e.g. a coarse matrix A_0) get a dense Cholesky, everything else
+    a sparse LU with a symmetric ordering. A singular matrix raises a clear error.
+    """
+    n = K.shape[0]
+    if n == 0:
         return lambda rhs: np.zeros_like(rhs)
+    if n <= DENSE_FACTOR_MAX and K.nnz >= 0.1 * n * n:
+        try:
+            c = la.cho_factor(K.toarray(), lower=True, check_finite=True)
+        except (la.LinAlgError, ValueError) as exc:
+            raise SingularLocalMatrixError(f"{what} is not positive definite: {exc}") from None
+        return lambda rhs: la.cho_solve(c, rhs, check_finite=False)
     try:
         lu = spla.splu(sp.csc_matrix(K), permc_spec="MMD_AT_PLUS_A",
                        diag_pivot_thresh=0.0, options={"SymmetricMode": True})
