@@ -54,11 +54,11 @@ def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
     """Solve A x = b (A SPD) by CG preconditioned with M ≈ A⁻¹ (SPD).
 
     Stops when ‖b − A x‖₂ ≤ tol·‖b‖₂ (the paper's relative tolerance) or after ``maxiter``
-    iterations (default: the dimension). Returns x and a :class:`CGInfo`.
+    iterations (default: 10 × the dimension, as scipy; finite precision needs more than n). Returns x and a :class:`CGInfo`.
     """
     b = np.asarray(b, dtype=float)
     n = b.shape[0]
-    maxiter = n if maxiter is None else int(maxiter)
+    maxiter = 10 * n if maxiter is None else int(maxiter)
     x = np.zeros(n) if x0 is None else np.array(x0, dtype=float)
     r = b - A @ x if x0 is not None else b.copy()
     bnorm = float(np.linalg.norm(b))

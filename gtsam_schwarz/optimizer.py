@@ -37,7 +37,7 @@ class SchwarzParams:
     overlap: int = 1
     grow_along: str = "odometry"  # or "all"
     cg_tol: float = 1e-8
-    cg_max_iterations: int | None = None  # None: the system dimension
+    cg_max_iterations: int | None = None  # None: 10 × the system dimension
     max_iterations: int = 100
     gradient_tol: float = 1e-8
     relative_gradient_tol: float = 1e-6

@@ -1,0 +1,35 @@
+import pathlib
+
+import gtsam
+import numpy as np
+import pytest
+
+DATASETS = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "datasets"
+
+
+def dataset(name: str) -> pathlib.Path:
+    """Path of a public dataset in ../shared/datasets (CI has it beside the checkout)."""
+    path = DATASETS / name
+    if not path.exists():
+        pytest.fail(f"dataset {path} is missing: the project expects ../shared/datasets beside it")
+    return path
+
+
+def pose2_array(values: gtsam.Values) -> np.ndarray:
+    return gtsam.utilities.extractPose2(values)
+
+
+def pose2_difference(a: gtsam.Values, b: gtsam.Values) -> np.ndarray:
+    """Per-pose (dx, dy, dθ) with the angle difference wrapped to (−π, π]."""
+    d = pose2_array(a) - pose2_array(b)
+    d[:, 2] = (d[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    return d
+
+
+def gtsam_gauss_newton(graph, initial, iterations: int) -> gtsam.Values:
+    """GTSAM's own Gauss–Newton for exactly ``iterations`` steps (error tolerances off)."""
+    params = gtsam.GaussNewtonParams()
+    params.setRelativeErrorTol(0.0)
+    params.setAbsoluteErrorTol(0.0)
+    params.setMaxIterations(iterations)
+    return gtsam.GaussNewtonOptimizer(graph, initial, params).optimize()
