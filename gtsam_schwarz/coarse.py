@@ -1,9 +1,12 @@
-"""GDSW-type coarse space: interface modes extended by discrete harmonic extension (paper Sec. 3.3).
+"""GDSW-type coarse spaces: interface modes extended by discrete harmonic extension (paper Sec. 3.3).
 
-For every interface pose the interface values are unit vectors on its dofs (all of them, or the
-translations only for the variant without rotation). Interior values solve
-A_II φ_I = −A_IΓ φ_Γ; A_II is block diagonal over the subdomain interiors (every edge lies in one
-subdomain), so one factorization and one multi-column solve extend all basis functions at once.
+Each interface component gets the rigid-body modes of the pose graph (translations and rotation
+about the component's centroid) written in each pose's GTSAM tangent coordinates; without vertex
+geometry, the algebraic unit vectors per dof are used (the paper's choice, identical in span for
+single-pose components). GDSW: one set of modes per component. RGDSW: modes only on coarse nodes,
+spread to the other interface vertices with weights 1/#ancestors. Interior values solve
+A_II φ_I = −A_IΓ φ_Γ; A_II is block diagonal over subdomain interiors (every edge lies in one
+subdomain), so one factorization and one multi-column solve extend every basis function at once.
 """
 
 from __future__ import annotations
@@ -15,43 +18,120 @@ import scipy.sparse as sp
 
 from .decomposition import Decomposition
 from .interface import Interface
+from .linear_system import VertexGeometry
 from .local_solvers import factorize
+
+COARSE_SPACES = ("gdsw", "rgdsw")
 
 
 @dataclass(frozen=True)
 class CoarseSpace:
     Phi: sp.csr_matrix  # n × n_c coarse basis
     A0: sp.csr_matrix  # Φᵀ A Φ
-    column_vertex: np.ndarray  # interface vertex of each coarse column
+    column_component: np.ndarray  # interface component (coarse node) of each column
 
     @property
     def size(self) -> int:
         return self.Phi.shape[1]
 
 
-def interface_values(interface: Interface, offsets: np.ndarray, dof_mask: np.ndarray | None):
-    """Φ_Γ as (global dof, column) pairs: a unit vector per selected dof of each interface vertex."""
-    starts = offsets[interface.vertices]
-    dims = offsets[interface.vertices + 1] - starts
-    owner = np.repeat(np.arange(interface.size), dims)
-    dofs = np.repeat(starts, dims) + np.arange(int(dims.sum())) - np.repeat(np.cumsum(dims) - dims, dims)
-    if dof_mask is not None:
-        keep = dof_mask[dofs]
-        dofs, owner = dofs[keep], owner[keep]
-    return dofs, owner  # column c is dof dofs[c], belonging to interface vertex owner[c]
+def rigid_modes(geometry: VertexGeometry, vertices: np.ndarray, centers: np.ndarray,
+                rotation: bool) -> np.ndarray:
+    """Rigid-body modes at ``vertices`` about ``centers`` in GTSAM tangent coordinates.
+
+    Returns (len(vertices), dim, n_modes). Pose2 tangent (v_x, v_y, ω): translation t ↦
+    (Rᵀt, 0), rotation about c ↦ (Rᵀ J (x − c), 1). Pose3 tangent (ω, v): translation t ↦
+    (0, Rᵀt), rotation about axis e_k at c ↦ (Rᵀe_k, Rᵀ(e_k × (x − c))).
+    """
+    R = geometry.rotations[vertices]
+    Rt = np.swapaxes(R, 1, 2)
+    r = geometry.positions[vertices] - centers
+    m = len(vertices)
+    if geometry.d == 2:
+        modes = np.zeros((m, 3, 3))
+        modes[:, :2, 0:2] = Rt  # translations x, y
+        perp = np.stack([-r[:, 1], r[:, 0]], axis=1)  # J (x − c)
+        modes[:, :2, 2] = np.einsum("mij,mj->mi", Rt, perp)
+        modes[:, 2, 2] = 1.0
+        return modes if rotation else modes[:, :, :2]
+    modes = np.zeros((m, 6, 6))
+    modes[:, 3:, 0:3] = Rt  # translations
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = 1.0
+        modes[:, :3, 3 + k] = Rt[:, :, k]
+        modes[:, 3:, 3 + k] = np.einsum("mij,mj->mi", Rt, np.cross(e, r))
+    return modes if rotation else modes[:, :, :3]
+
+
+def interface_values(interface: Interface, offsets: np.ndarray, kind: str = "gdsw",
+                     geometry: VertexGeometry | None = None, rotation: bool = True,
+                     translation_mask: np.ndarray | None = None):
+    """Φ_Γ as triplets (global dof, column, value) and the interface component of each column."""
+    comp = interface.component
+    nverts = interface.size
+    if kind == "gdsw":
+        pair_v, pair_node, weight = np.arange(nverts), comp, np.ones(nverts)
+        nodes = np.arange(interface.n_components)
+    elif kind == "rgdsw":
+        is_node, anc = interface.coarse_nodes()
+        A = sp.csr_matrix(anc[comp])  # interface vertex × ancestor node
+        counts = np.diff(A.indptr)
+        pair_v = np.repeat(np.arange(nverts), counts)
+        pair_node = A.indices
+        weight = 1.0 / counts[pair_v]
+        nodes = np.flatnonzero(is_node)
+    else:
+        raise ValueError(f"unknown coarse space {kind!r}; choose one of {', '.join(COARSE_SPACES)}")
+    node_col = np.full(interface.n_components, -1, dtype=np.int64)
+    node_col[nodes] = np.arange(len(nodes))
+    verts = interface.vertices[pair_v]
+    starts = offsets[verts]
+    dim = int(offsets[verts[0] + 1] - starts[0]) if len(verts) else 0
+    uniform = len(verts) and np.all(offsets[verts + 1] - starts == dim)
+    if geometry is not None and uniform and dim == {2: 3, 3: 6}[geometry.d]:
+        # centroid of every coarse node's own vertices
+        cnt = np.bincount(comp, minlength=interface.n_components)
+        centers = np.stack([np.bincount(comp, weights=geometry.positions[interface.vertices, k],
+                                        minlength=interface.n_components) for k in range(geometry.d)], 1)
+        centers /= np.maximum(cnt, 1)[:, None]
+        M = rigid_modes(geometry, verts, centers[pair_node], rotation)  # (pairs, dim, modes)
+        n_modes = M.shape[2]
+        rows = (starts[:, None, None] + np.arange(dim)[None, :, None]).repeat(n_modes, 2)
+        cols = (node_col[pair_node][:, None, None] * n_modes + np.arange(n_modes)[None, None, :]).repeat(dim, 1)
+        vals = M * weight[:, None, None]
+    else:
+        # algebraic modes: a unit vector per selected dof (paper Sec. 3.3, "(0,0,1) at the node")
+        dims = offsets[verts + 1] - starts
+        n_modes = int(dims.max()) if len(dims) else 0
+        p = np.repeat(np.arange(len(verts)), dims)
+        local = np.arange(int(dims.sum())) - np.repeat(np.cumsum(dims) - dims, dims)
+        rows = starts[p] + local
+        cols = node_col[pair_node][p] * n_modes + local
+        vals = weight[p]
+        if not rotation and translation_mask is not None:
+            keep = translation_mask[rows]
+            rows, cols, vals = rows[keep], cols[keep], vals[keep]
+    rows, cols, vals = np.ravel(rows), np.ravel(cols), np.ravel(vals)
+    nz = vals != 0.0
+    rows, cols, vals = rows[nz], cols[nz], vals[nz]
+    # renumber columns densely (drops modes that vanish everywhere, e.g. unused dofs)
+    used, cols = np.unique(cols, return_inverse=True)
+    column_component = nodes[used // max(n_modes, 1)]
+    return rows, cols.ravel(), vals, column_component
 
 
 def harmonic_extension(A: sp.spmatrix, decomposition: Decomposition, interface: Interface,
                        gamma_rows: np.ndarray, gamma_cols: np.ndarray, gamma_vals: np.ndarray,
-                       col_vertex: np.ndarray) -> sp.csr_matrix:
+                       col_subdomains: sp.csr_matrix) -> sp.csr_matrix:
     """Φ with Φ_Γ given as triplets and Φ_I = −A_II⁻¹ A_IΓ Φ_Γ, restricted subdomain by subdomain.
 
-    The right-hand sides are compressed: subdomain i only sees the K_i coarse columns of its own
-    interface vertices, so all subdomains share K = max K_i columns of one solve with A_II.
+    The right-hand sides are compressed: subdomain i only sees the K_i coarse columns whose
+    subdomain set contains i, so all subdomains share K = max K_i columns of one solve with A_II.
     """
     offsets = decomposition.structure.offsets
     n = decomposition.structure.n_dofs
-    nc = len(col_vertex)
+    nc = col_subdomains.shape[0]
     A = sp.csr_matrix(A)
     owner_dof = np.repeat(interface.interior_subdomain, np.diff(offsets))  # −1 on Γ
     interior = np.flatnonzero(owner_dof >= 0)
@@ -60,27 +140,22 @@ def harmonic_extension(A: sp.spmatrix, decomposition: Decomposition, interface: 
     if nc == 0 or len(interior) == 0:
         return Phi_G
     sub = owner_dof[interior]
-    # (subdomain, column) pairs: column c lives on subdomain i if its vertex is in V_i
-    inc = sp.csr_matrix(interface.subdomains)  # interface-vertex × subdomain
-    pos = np.searchsorted(interface.vertices, col_vertex)
-    P = sp.csr_matrix(inc[pos].T)  # subdomain × column
+    P = sp.csr_matrix(col_subdomains.T)  # subdomain × column
     P.sort_indices()
     counts = np.diff(P.indptr)
     K = int(counts.max())
     pair_sub = np.repeat(np.arange(P.shape[0]), counts)
     pair_key = pair_sub * np.int64(nc) + P.indices  # sorted
     local_k = np.arange(len(P.indices)) - P.indptr[pair_sub]
-    # right-hand sides −A_IΓ Φ_Γ, columns renumbered locally per subdomain
     B = sp.coo_matrix(-(A[interior][:, gamma] @ Phi_G[gamma]))
     key = sub[B.row] * np.int64(nc) + B.col
-    at = np.searchsorted(pair_key, key)
-    if np.any(at >= len(pair_key)) or np.any(pair_key[np.minimum(at, len(pair_key) - 1)] != key):
+    at = np.minimum(np.searchsorted(pair_key, key), len(pair_key) - 1)
+    if np.any(pair_key[at] != key):
         raise AssertionError("interface coupling outside its subdomain: decomposition is inconsistent")
     Bc = np.zeros((len(interior), K))
     np.add.at(Bc, (B.row, local_k[at]), B.data)
     solve = factorize(A[interior][:, interior], "the interior matrix A_II")
     X = solve(Bc)
-    # scatter back: interior row r, local column k < counts[sub[r]] → global column
     table = np.full((P.shape[0], K), -1, dtype=np.int64)
     table[pair_sub, local_k] = P.indices
     cols = table[sub]
@@ -90,13 +165,14 @@ def harmonic_extension(A: sp.spmatrix, decomposition: Decomposition, interface: 
 
 
 def gdsw_coarse_space(A: sp.spmatrix, decomposition: Decomposition, interface: Interface,
-                      dof_mask: np.ndarray | None = None) -> CoarseSpace:
-    """GDSW coarse space; ``dof_mask`` selects the interface dofs that get a mode
-    (None: all dofs, "with rotation"; translation mask: "without rotation")."""
+                      kind: str = "gdsw", geometry: VertexGeometry | None = None,
+                      rotation: bool = True, translation_mask: np.ndarray | None = None) -> CoarseSpace:
+    """GDSW (``kind="gdsw"``) or RGDSW (``"rgdsw"``) coarse space, with or without rotations."""
     offsets = decomposition.structure.offsets
-    dofs, owner = interface_values(interface, offsets, dof_mask)
-    nc = len(dofs)
-    col_vertex = interface.vertices[owner]
-    Phi = harmonic_extension(A, decomposition, interface, dofs, np.arange(nc), np.ones(nc), col_vertex)
+    rows, cols, vals, column_component = interface_values(
+        interface, offsets, kind, geometry, rotation, translation_mask)
+    col_subdomains = sp.csr_matrix(interface.component_subdomains()[column_component]) \
+        if len(column_component) else sp.csr_matrix((0, decomposition.n_subdomains))
+    Phi = harmonic_extension(A, decomposition, interface, rows, cols, vals, col_subdomains)
     A0 = (Phi.T @ sp.csr_matrix(A) @ Phi).tocsr()
-    return CoarseSpace(Phi=Phi, A0=A0, column_vertex=col_vertex)
+    return CoarseSpace(Phi=Phi, A0=A0, column_component=column_component)

@@ -79,6 +79,34 @@ def segment_partition(structure: GraphStructure, n_subdomains: int) -> np.ndarra
     return (pos * N) // npos
 
 
+def metis_partition(structure: GraphStructure, n_subdomains: int, seed: int = 0) -> np.ndarray:
+    """Edge → subdomain from a METIS k-way partition of the vertices (pymetis).
+
+    An edge inside a vertex part goes to that part; a cut edge goes to the part of its later
+    vertex, so its earlier vertex becomes an interface pose.
+    """
+    import pymetis  # the field's standard graph partitioner; imported only when asked for
+
+    nv = structure.n_vertices
+    N = int(min(max(int(n_subdomains), 1), max(nv, 1)))
+    if N == 1 or len(structure.edges) == 0:
+        return np.zeros(len(structure.edges), dtype=np.int64)
+    adj = structure.adjacency()
+    adj.sort_indices()
+    opts = pymetis.Options(seed=seed)
+    _, parts = pymetis.part_graph(N, xadj=adj.indptr, adjncy=adj.indices, options=opts)
+    parts = np.asarray(parts, dtype=np.int64)
+    return parts[structure.edges[:, 1]]
+
+
+PARTITIONS = ("segments", "metis")
+
+
+def default_subdomains(n_vertices: int, subdomain_size: int = 500) -> int:
+    """Number of subdomains chosen from the size: about ``subdomain_size`` poses each."""
+    return max(1, int(round(n_vertices / max(subdomain_size, 1))))
+
+
 def _binary(M: sp.spmatrix) -> sp.csr_matrix:
     M = sp.csr_matrix(M)
     M.data[:] = 1.0
@@ -148,3 +176,15 @@ def segments(structure: GraphStructure, n_subdomains: int, overlap: int = 1,
              grow_along: str = "odometry") -> Decomposition:
     """The default decomposition: contiguous trajectory segments with δ-layer overlap."""
     return Decomposition.build(structure, segment_partition(structure, n_subdomains), overlap, grow_along)
+
+
+def decompose(structure: GraphStructure, n_subdomains: int, partition: str = "segments",
+              overlap: int = 1, grow_along: str = "odometry") -> Decomposition:
+    """Edge partition by ``partition`` ("segments" or "metis"), then δ-layer overlap."""
+    if partition == "segments":
+        part = segment_partition(structure, n_subdomains)
+    elif partition == "metis":
+        part = metis_partition(structure, n_subdomains)
+    else:
+        raise ValueError(f"unknown partition {partition!r}; choose one of {', '.join(PARTITIONS)}")
+    return Decomposition.build(structure, part, overlap, grow_along)

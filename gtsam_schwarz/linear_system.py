@@ -19,6 +19,19 @@ _TRANSLATION_DOFS = {3: (0, 1), 6: (3, 4, 5)}
 
 
 @dataclass(frozen=True)
+class VertexGeometry:
+    """Variable positions and rotations at the linearization point (Pose2: d = 2, Pose3: d = 3),
+    used for the rigid-body modes of the coarse space."""
+
+    positions: np.ndarray  # (n_vertices, d)
+    rotations: np.ndarray  # (n_vertices, d, d), world-from-body
+
+    @property
+    def d(self) -> int:
+        return self.positions.shape[1]
+
+
+@dataclass(frozen=True)
 class KeyMap:
     """Map from gtsam keys (sorted, as GTSAM orders columns) to contiguous dof ranges."""
 
@@ -67,6 +80,35 @@ class KeyMap:
                 mask[(first[:, None] + np.arange(d)).ravel()] = False
                 mask[(first[:, None] + np.asarray(tdofs)).ravel()] = True
         return mask
+
+    def geometry(self, values: gtsam.Values) -> VertexGeometry | None:
+        """Poses of all variables in key order, if they are all Pose2 or all Pose3; else None."""
+        if self.size == 0 or not (np.all(self.dims == 3) or np.all(self.dims == 6)):
+            return None
+        planar = bool(self.dims[0] == 3)
+        table = (gtsam.utilities.extractPose2 if planar else gtsam.utilities.extractPose3)(values)
+        typed = [k for k in values.keys()] if len(table) != values.size() else None
+        if typed is not None:  # other value types present: find the poses' keys one by one
+            at = values.atPose2 if planar else values.atPose3
+            ok = []
+            for k in typed:
+                try:
+                    at(k)
+                    ok.append(k)
+                except RuntimeError:
+                    pass
+            keys = np.asarray(ok, dtype=np.uint64)
+        else:
+            keys = np.asarray(values.keys(), dtype=np.uint64)
+        pos = np.searchsorted(keys, self.keys)
+        if len(keys) != len(table) or np.any(pos >= len(keys)) or np.any(keys[np.minimum(pos, len(keys) - 1)] != self.keys):
+            return None
+        rows = table[pos]
+        if planar:
+            c, s_ = np.cos(rows[:, 2]), np.sin(rows[:, 2])
+            R = np.stack([np.stack([c, -s_], 1), np.stack([s_, c], 1)], 1)
+            return VertexGeometry(positions=rows[:, :2].copy(), rotations=R)
+        return VertexGeometry(positions=rows[:, 9:12].copy(), rotations=rows[:, :9].reshape(-1, 3, 3))
 
     def to_vector_values(self, x: np.ndarray) -> gtsam.VectorValues:
         """Numpy step → ``gtsam.VectorValues`` (gtsam offers no bulk constructor: one insert per key)."""

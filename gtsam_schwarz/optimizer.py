@@ -1,4 +1,4 @@
-"""Gauss–Newton over ``gtsam.Values`` with Schwarz-preconditioned CG as the linear solver.
+"""Gauss–Newton and Levenberg–Marquardt over ``gtsam.Values`` with Schwarz-preconditioned CG.
 
 Per iteration: linearize (gtsam) → export H, g → build the preconditioner → PCG → retract.
 What depends only on the graph (key map, decomposition, index sets) is built once.
@@ -13,13 +13,21 @@ import gtsam
 import numpy as np
 import scipy.sparse as sp
 
-from .decomposition import GraphStructure, segments
+from .decomposition import PARTITIONS, GraphStructure, decompose, default_subdomains
 from .krylov import pcg
-from .linear_system import KeyMap, export_linear_system
+from .linear_system import KeyMap, LinearSystem, export_linear_system
 from .local_solvers import factorize
 from .preconditioners import PRECONDITIONERS, make_preconditioner
 
 LINEAR_SOLVERS = PRECONDITIONERS + ("direct",)
+METHODS = ("gn", "lm")
+FORCING = ("none", "eisenstat-walker")
+_TWO_LEVEL = ("gdsw", "gdsw-norot", "rgdsw")
+
+
+def _choice(name, value, allowed):
+    if value not in allowed:
+        raise ValueError(f"unknown {name} {value!r}; choose one of {', '.join(allowed)}")
 
 
 @dataclass
@@ -28,34 +36,56 @@ class SchwarzParams:
 
     Stopping: the paper's (‖g‖ ≤ ``gradient_tol`` or ‖g‖ ≤ ``relative_gradient_tol``·‖g₀‖), GTSAM's
     error decrease (relative ``relative_error_tol``, absolute ``absolute_error_tol``, ``error_tol``),
-    and ``max_iterations``. A step that increases the error is rejected and ends the loop.
+    and ``max_iterations``. Gauss–Newton rejects a step that increases the error and stops;
+    Levenberg–Marquardt raises λ and retries, like GTSAM's (λ₀ = 1e-5, factor 10, λ ≤ 1e5).
+    ``forcing="eisenstat-walker"`` makes the CG tolerance an inexact-Newton forcing term.
     """
 
-    preconditioner: str = "gdsw"  # none | jacobi | block-jacobi | one-level | gdsw | gdsw-norot | direct
-    subdomains: int | None = None  # None: one per `subdomain_size` poses
+    method: str = "gn"  # gn | lm
+    preconditioner: str = "gdsw"  # none | jacobi | block-jacobi | one-level | gdsw | gdsw-norot | rgdsw | direct
+    subdomains: int | None = None  # None: about `subdomain_size` poses each
     subdomain_size: int = 500
+    partition: str = "segments"  # segments | metis
     overlap: int = 1
-    grow_along: str = "odometry"  # or "all"
+    grow_along: str = "odometry"  # odometry | all
+    interface_grouping: str = "components"  # components | vertices
+    coarse_modes: str = "rigid"  # rigid (rigid-body modes about component centroids) | unit
     cg_tol: float = 1e-8
     cg_max_iterations: int | None = None  # None: 10 × the system dimension
+    forcing: str = "none"  # none | eisenstat-walker
+    forcing_max: float = 0.1
     max_iterations: int = 100
     gradient_tol: float = 1e-8
     relative_gradient_tol: float = 1e-6
     relative_error_tol: float = 1e-5
     absolute_error_tol: float = 1e-5
     error_tol: float = 0.0
+    lambda_initial: float = 1e-5
+    lambda_factor: float = 10.0
+    lambda_upper_bound: float = 1e5
+    lambda_lower_bound: float = 0.0
+    diagonal_damping: bool = False
+    min_model_fidelity: float = 1e-3
     verbose: bool = False
 
     def __post_init__(self):
-        if self.preconditioner not in LINEAR_SOLVERS:
-            raise ValueError(f"unknown preconditioner {self.preconditioner!r}; "
-                             f"choose one of {', '.join(LINEAR_SOLVERS)}")
+        _choice("method", self.method, METHODS)
+        _choice("preconditioner", self.preconditioner, LINEAR_SOLVERS)
+        _choice("partition", self.partition, PARTITIONS)
+        _choice("forcing", self.forcing, FORCING)
+        _choice("grow_along", self.grow_along, ("odometry", "all"))
+        _choice("interface_grouping", self.interface_grouping, ("components", "vertices"))
+        _choice("coarse_modes", self.coarse_modes, ("rigid", "unit"))
         if self.subdomains is not None and self.subdomains < 1:
             raise ValueError(f"subdomains must be >= 1, got {self.subdomains}")
         if self.overlap < 0:
             raise ValueError(f"overlap must be >= 0, got {self.overlap}")
         if not self.cg_tol > 0:
             raise ValueError(f"cg_tol must be > 0, got {self.cg_tol}")
+        if self.max_iterations < 0:
+            raise ValueError(f"max_iterations must be >= 0, got {self.max_iterations}")
+        if not self.lambda_factor > 1:
+            raise ValueError(f"lambda_factor must be > 1, got {self.lambda_factor}")
 
 
 @dataclass
@@ -66,10 +96,17 @@ class SolveResult:
     lambda_min: float = float("nan")
     lambda_max: float = float("nan")
     residuals: list = field(default_factory=list)
+    tolerance: float = float("nan")
+    setup_seconds: float = 0.0
+    coarse_size: int = 0
 
 
 class SchwarzOptimizer:
-    """``SchwarzOptimizer(graph, initial, params).optimize()`` → ``gtsam.Values``, like GTSAM's."""
+    """``SchwarzOptimizer(graph, initial, params).optimize()`` → ``gtsam.Values``, like GTSAM's.
+
+    ``history`` holds one dict per linear solve (Levenberg–Marquardt may try several per
+    iteration; ``accepted`` tells which step was kept).
+    """
 
     def __init__(self, graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
                  params: SchwarzParams | None = None):
@@ -84,7 +121,10 @@ class SchwarzOptimizer:
         self.converged = False
         self.stop_reason = ""
         self.final_gradient_norm = float("nan")
+        self._translation_mask = self.keymap.translation_mask()
         self._g0 = None
+        self._forcing_prev = None  # (gradient norm, η) of the previous linear solve
+        self._lambda = self.params.lambda_initial
 
     # -- GTSAM-like accessors ------------------------------------------------------------
     def values(self) -> gtsam.Values:
@@ -94,112 +134,198 @@ class SchwarzOptimizer:
         return self._error
 
     def iterations(self) -> int:
-        return len(self.history)
+        """Nonlinear iterations (linearization points from which a step was tried)."""
+        return len({h["iteration"] for h in self.history})
+
+    @property
+    def lambda_(self) -> float:
+        return self._lambda
 
     # -- pieces ----------------------------------------------------------------------------
     def n_subdomains(self) -> int:
         p = self.params
-        if p.subdomains is not None:
-            return p.subdomains
-        return max(1, int(round(self.keymap.size / p.subdomain_size)))
+        return p.subdomains if p.subdomains is not None else default_subdomains(self.keymap.size, p.subdomain_size)
 
     def _decompose(self, H):
         if self.decomposition is None:
+            p = self.params
             structure = GraphStructure.from_matrix(H, self.keymap.offsets)
-            self.decomposition = segments(structure, self.n_subdomains(), self.params.overlap,
-                                          self.params.grow_along)
-            self._translation_mask = self.keymap.translation_mask()
+            self.decomposition = decompose(structure, self.n_subdomains(), p.partition, p.overlap, p.grow_along)
         return self.decomposition
 
-    def solve_linear(self, H, rhs) -> tuple[SolveResult, float]:
-        """Solve H x = rhs with the configured method; returns (result, setup seconds)."""
+    def _tolerance(self, gnorm: float) -> float:
+        """CG relative tolerance: fixed, or the Eisenstat–Walker (choice 2) forcing term."""
         p = self.params
+        if p.forcing == "none":
+            return p.cg_tol
+        if self._forcing_prev is None:
+            eta = p.forcing_max
+        else:
+            g_prev, eta_prev = self._forcing_prev
+            eta = 0.9 * (gnorm / g_prev) ** 2
+            safeguard = 0.9 * eta_prev ** 2
+            if safeguard > 0.1:
+                eta = max(eta, safeguard)
+            eta = min(eta, p.forcing_max)
+        return max(eta, p.cg_tol)
+
+    def solve_linear(self, H, rhs, tol: float | None = None) -> SolveResult:
+        """Solve H x = rhs with the configured preconditioned CG (or the direct reference)."""
+        p = self.params
+        tol = p.cg_tol if tol is None else tol
         t0 = time.perf_counter()
         if p.preconditioner == "direct":
             solve = factorize(sp.csc_matrix(H), "the Gauss-Newton matrix")
             t1 = time.perf_counter()
-            return SolveResult(x=solve(rhs)), t1 - t0
-        M = make_preconditioner(p.preconditioner, H, self._decompose(H), self._translation_mask)
+            return SolveResult(x=solve(rhs), setup_seconds=t1 - t0, tolerance=0.0)
+        dec = self._decompose(H)
+        geometry = None
+        if p.preconditioner in _TWO_LEVEL and p.coarse_modes == "rigid":
+            geometry = self.keymap.geometry(self._values)
+        M = make_preconditioner(p.preconditioner, H, dec, self._translation_mask, geometry,
+                                p.interface_grouping)
         t1 = time.perf_counter()
-        x, info = pcg(H, rhs, None if p.preconditioner == "none" else M, tol=p.cg_tol,
+        x, info = pcg(H, rhs, None if p.preconditioner == "none" else M, tol=tol,
                       maxiter=p.cg_max_iterations)
+        coarse = getattr(M, "coarse_space", None)
         return SolveResult(x=x, iterations=info.iterations, converged=info.converged,
                            lambda_min=info.lambda_min, lambda_max=info.lambda_max,
-                           residuals=info.residuals), t1 - t0
+                           residuals=info.residuals, tolerance=tol, setup_seconds=t1 - t0,
+                           coarse_size=coarse.size if coarse is not None else 0)
 
-    # -- the loop -------------------------------------------------------------------------
-    def iterate(self) -> dict | None:
-        """One Gauss–Newton step. Returns its history record, or None if a gradient test stopped."""
-        p = self.params
+    def _linearize(self) -> tuple[LinearSystem, dict]:
         t0 = time.perf_counter()
         lin = self.graph.linearize(self._values)
         t1 = time.perf_counter()
         system = export_linear_system(lin, self.keymap)
         t2 = time.perf_counter()
-        gnorm = float(np.linalg.norm(system.g))
+        return system, {"linearize": t1 - t0, "export": t2 - t1}
+
+    def _gradient_converged(self, gnorm: float) -> bool:
+        p = self.params
         if self._g0 is None:
             self._g0 = gnorm
         self.final_gradient_norm = gnorm
         if gnorm <= p.gradient_tol:
             self.converged, self.stop_reason = True, f"gradient norm {gnorm:.3e} <= {p.gradient_tol:g}"
-            return None
+            return True
         if gnorm <= p.relative_gradient_tol * self._g0:
             self.converged, self.stop_reason = True, (
                 f"gradient norm decreased by {gnorm / self._g0:.3e} <= {p.relative_gradient_tol:g}")
-            return None
-        if not p.preconditioner == "direct":
-            self._decompose(system.H)
-        t3 = time.perf_counter()
-        result, setup = self.solve_linear(system.H, system.rhs)
-        t4 = time.perf_counter()
+            return True
+        return False
+
+    def _damped(self, H, lam: float):
+        if lam == 0.0:
+            return H
+        if self.params.diagonal_damping:
+            d = np.clip(H.diagonal(), 1e-6, 1e32)
+        else:
+            d = np.ones(H.shape[0])
+        return (H + sp.diags(lam * d)).tocsr()
+
+    def _try_step(self, system: LinearSystem, gnorm: float, lam: float, iteration: int,
+                  seconds: dict) -> tuple[dict, gtsam.Values]:
+        """Solve (H + λD) δ = −g, retract, evaluate; returns the history record and new values."""
+        tol = self._tolerance(gnorm)
+        t0 = time.perf_counter()
+        result = self.solve_linear(self._damped(system.H, lam), system.rhs, tol)
+        t1 = time.perf_counter()
         new_values = self.keymap.retract(self._values, result.x)
         new_error = float(self.graph.error(new_values))
-        t5 = time.perf_counter()
+        t2 = time.perf_counter()
+        self._forcing_prev = (gnorm, tol)
+        dx = result.x
+        predicted = float(system.g @ dx + 0.5 * dx @ (system.H @ dx))
         record = {
-            "iteration": len(self.history) + 1,
+            "iteration": iteration,
             "error_before": self._error,
             "error": new_error,
             "gradient_norm": gnorm,
-            "step_norm": float(np.linalg.norm(result.x)),
+            "step_norm": float(np.linalg.norm(dx)),
+            "lambda": lam,
+            "model_fidelity": (self._error - new_error) / -predicted if predicted < 0 else float("nan"),
             "cg_iterations": result.iterations,
             "cg_converged": result.converged,
+            "cg_tolerance": result.tolerance,
             "lambda_min": result.lambda_min,
             "lambda_max": result.lambda_max,
+            "coarse_size": result.coarse_size,
             "cg_residuals": result.residuals,
-            "accepted": bool(np.isfinite(new_error) and new_error <= self._error),
-            "seconds": {"linearize": t1 - t0, "export": t2 - t1, "setup": setup + (t3 - t2),
-                        "cg": t4 - t3 - setup, "update": t5 - t4},
+            "accepted": False,
+            "seconds": {"linearize": seconds.get("linearize", 0.0), "export": seconds.get("export", 0.0),
+                        "setup": result.setup_seconds, "cg": t1 - t0 - result.setup_seconds,
+                        "update": t2 - t1},
         }
-        self.history.append(record)
-        if p.verbose:
-            print(f"iter {record['iteration']:3d}  error {new_error:.6e}  |g| {gnorm:.3e}  "
-                  f"cg {result.iterations:5d}  {sum(record['seconds'].values()):.2f}s", flush=True)
-        if record["accepted"]:
-            self._values, self._error = new_values, new_error
-        return record
+        return record, new_values
 
-    def optimize(self) -> gtsam.Values:
-        """Iterate until a stopping rule fires; returns the optimized ``gtsam.Values``."""
+    def _log(self, record):
+        if self.params.verbose:
+            flag = "" if record["accepted"] else "  (rejected)"
+            print(f"iter {record['iteration']:3d}  error {record['error']:.6e}  |g| {record['gradient_norm']:.3e}"
+                  f"  lambda {record['lambda']:.1e}  cg {record['cg_iterations']:5d}"
+                  f"  {sum(record['seconds'].values()):.2f}s{flag}", flush=True)
+
+    def _error_converged(self, before: float) -> bool:
+        """GTSAM's checkConvergence on an accepted step."""
         p = self.params
-        while len(self.history) < p.max_iterations:
-            before = self._error
-            record = self.iterate()
-            if record is None:
-                break
+        decrease = before - self._error
+        if self._error <= p.error_tol:
+            self.converged, self.stop_reason = True, f"error {self._error:.3e} <= {p.error_tol:g}"
+        elif decrease <= p.absolute_error_tol:
+            self.converged, self.stop_reason = True, f"absolute error decrease {decrease:.3e}"
+        elif before > 0 and decrease / before <= p.relative_error_tol:
+            self.converged, self.stop_reason = True, f"relative error decrease {decrease / before:.3e}"
+        return self.converged
+
+    # -- the loops ------------------------------------------------------------------------
+    def iterate(self) -> bool:
+        """One nonlinear iteration (GN step, or LM until a step is accepted or λ is too large).
+
+        Returns False when the loop must stop (a stopping rule fired or no step was accepted).
+        """
+        p = self.params
+        iteration = self.iterations() + 1
+        system, seconds = self._linearize()
+        gnorm = float(np.linalg.norm(system.g))
+        if self._gradient_converged(gnorm):
+            return False
+        before = self._error
+        if p.method == "gn":
+            record, new_values = self._try_step(system, gnorm, 0.0, iteration, seconds)
+            record["accepted"] = bool(np.isfinite(record["error"]) and record["error"] <= before)
+            self.history.append(record)
+            self._log(record)
             if not record["accepted"]:
                 self.converged = abs(record["error"] - before) <= max(p.absolute_error_tol,
                                                                        p.relative_error_tol * before)
                 self.stop_reason = "step increased the error: rejected"
-                break
-            decrease = before - self._error
-            if self._error <= p.error_tol:
-                self.converged, self.stop_reason = True, f"error {self._error:.3e} <= {p.error_tol:g}"
-                break
-            if decrease <= p.absolute_error_tol:
-                self.converged, self.stop_reason = True, f"absolute error decrease {decrease:.3e}"
-                break
-            if before > 0 and decrease / before <= p.relative_error_tol:
-                self.converged, self.stop_reason = True, f"relative error decrease {decrease / before:.3e}"
+                return False
+            self._values, self._error = new_values, record["error"]
+            return not self._error_converged(before)
+        while True:  # Levenberg–Marquardt
+            record, new_values = self._try_step(system, gnorm, self._lambda, iteration, seconds)
+            seconds = {}
+            fidelity = record["model_fidelity"]
+            ok = np.isfinite(record["error"]) and record["error"] < before and fidelity >= p.min_model_fidelity
+            record["accepted"] = bool(ok)
+            self.history.append(record)
+            self._log(record)
+            if ok:
+                self._values, self._error = new_values, record["error"]
+                self._lambda = max(self._lambda / p.lambda_factor, p.lambda_lower_bound)
+                return not self._error_converged(before)
+            self._lambda *= p.lambda_factor
+            if self._lambda > p.lambda_upper_bound:
+                self.converged = True
+                self.stop_reason = f"lambda {self._lambda:.1e} above {p.lambda_upper_bound:g}: no further decrease"
+                return False
+
+    def optimize(self) -> gtsam.Values:
+        """Iterate until a stopping rule fires; returns the optimized ``gtsam.Values``."""
+        p = self.params
+        while self.iterations() < p.max_iterations:
+            if not self.iterate():
                 break
         else:
             self.stop_reason = f"maximum of {p.max_iterations} iterations reached"
@@ -208,12 +334,17 @@ class SchwarzOptimizer:
     def summary(self) -> dict:
         cg = [h["cg_iterations"] for h in self.history]
         return {
-            "iterations": len(self.history),
+            "method": self.params.method,
+            "preconditioner": self.params.preconditioner,
+            "iterations": self.iterations(),
+            "linear_solves": len(self.history),
             "initial_error": self.initial_error,
             "final_error": self._error,
             "converged": self.converged,
             "stop_reason": self.stop_reason,
             "cg_iterations": cg,
+            "cg_total": int(sum(cg)),
             "cg_mean": float(np.mean(cg)) if cg else 0.0,
             "subdomains": self.decomposition.n_subdomains if self.decomposition else None,
+            "coarse_size": self.history[-1]["coarse_size"] if self.history else 0,
         }

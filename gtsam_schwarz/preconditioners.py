@@ -13,9 +13,10 @@ from scipy.sparse.linalg import LinearOperator
 from .coarse import CoarseSpace, gdsw_coarse_space
 from .decomposition import Decomposition
 from .interface import find_interface
+from .linear_system import VertexGeometry
 from .local_solvers import BlockDiagonalSolver, IndexSets, SingularLocalMatrixError, factorize
 
-PRECONDITIONERS = ("none", "jacobi", "block-jacobi", "one-level", "gdsw", "gdsw-norot")
+PRECONDITIONERS = ("none", "jacobi", "block-jacobi", "one-level", "gdsw", "gdsw-norot", "rgdsw")
 
 
 class Preconditioner:
@@ -98,13 +99,37 @@ class BlockJacobi(AdditiveSchwarz):
 
 
 class CoarseCorrection(Preconditioner):
-    """R_0ᵀ A_0⁻¹ R_0 with R_0 = Φᵀ and A_0 = Φᵀ A Φ."""
+    """R_0ᵀ A_0⁻¹ R_0 with R_0 = Φᵀ and A_0 = Φᵀ A Φ.
+
+    A rank-deficient Φ (dependent coarse vectors) makes A_0 singular: then the dependent
+    directions are dropped (pseudo-inverse on the range of the diagonally scaled A_0), which
+    gives the same coarse space without them. ``dropped`` counts them.
+    """
+
+    DROP_TOL = 1e-10
 
     def __init__(self, coarse: CoarseSpace):
         self.coarse = coarse
         self.n = coarse.Phi.shape[0]
         self.PhiT = coarse.Phi.T.tocsr()
-        self._solve = factorize(coarse.A0, "the coarse matrix A_0")
+        self.dropped = 0
+        try:
+            self._solve = factorize(coarse.A0, "the coarse matrix A_0")
+        except SingularLocalMatrixError:
+            self._solve = self._range_solver(coarse.A0)
+
+    def _range_solver(self, A0):
+        nc = A0.shape[0]
+        if nc > 8000:
+            raise SingularLocalMatrixError(f"the coarse matrix A_0 ({nc} × {nc}) is singular")
+        D = A0.diagonal()
+        s = np.where(D > 0, 1.0 / np.sqrt(np.where(D > 0, D, 1.0)), 0.0)
+        w, V = np.linalg.eigh(s[:, None] * A0.toarray() * s[None, :])
+        keep = w > self.DROP_TOL * max(w.max(), 0.0)
+        self.dropped = int(nc - keep.sum())
+        W = s[:, None] * V[:, keep]
+        inv = 1.0 / w[keep]
+        return lambda r: W @ (inv * (W.T @ r))
 
     def matvec(self, x):
         if self.coarse.size == 0:
@@ -113,19 +138,29 @@ class CoarseCorrection(Preconditioner):
 
 
 class TwoLevelSchwarz(SumOperator):
-    """Two-level additive Schwarz: one-level operator + GDSW coarse correction (paper Sec. 3.3)."""
+    """Two-level additive Schwarz: one-level operator + GDSW/RGDSW coarse correction (Sec. 3.3)."""
 
-    def __init__(self, A, decomposition: Decomposition, dof_mask: np.ndarray | None = None):
+    def __init__(self, A, decomposition: Decomposition, kind: str = "gdsw", rotation: bool = True,
+                 geometry: VertexGeometry | None = None, translation_mask: np.ndarray | None = None,
+                 interface_grouping: str = "components"):
         self.decomposition = decomposition
-        self.interface = find_interface(decomposition)
-        self.coarse_space = gdsw_coarse_space(A, decomposition, self.interface, dof_mask)
+        self.interface = find_interface(decomposition, interface_grouping)
+        self.coarse_space = gdsw_coarse_space(A, decomposition, self.interface, kind, geometry,
+                                              rotation, translation_mask)
         self.one_level = AdditiveSchwarz(A, decomposition.index_sets(overlapping=True))
-        super().__init__([self.one_level, CoarseCorrection(self.coarse_space)])
+        self.coarse = CoarseCorrection(self.coarse_space)
+        super().__init__([self.one_level, self.coarse])
 
 
 def make_preconditioner(name: str, A, decomposition: Decomposition | None = None,
-                        translation_mask: np.ndarray | None = None) -> Preconditioner:
-    """Build the preconditioner called ``name`` (one of :data:`PRECONDITIONERS`) for matrix A."""
+                        translation_mask: np.ndarray | None = None,
+                        geometry: VertexGeometry | None = None,
+                        interface_grouping: str = "components") -> Preconditioner:
+    """Build the preconditioner called ``name`` (one of :data:`PRECONDITIONERS`) for matrix A.
+
+    ``geometry`` (poses at the linearization point) gives the coarse spaces rigid-body modes;
+    without it they use unit vectors per interface dof.
+    """
     if name == "none":
         return Identity(A)
     if name == "jacobi":
@@ -134,13 +169,13 @@ def make_preconditioner(name: str, A, decomposition: Decomposition | None = None
         if decomposition is None:
             raise ValueError("block-jacobi needs the variables' dof ranges (a decomposition)")
         return BlockJacobi(A, decomposition.structure.offsets)
-    if name in ("one-level", "gdsw", "gdsw-norot"):
+    if name in ("one-level", "gdsw", "gdsw-norot", "rgdsw"):
         if decomposition is None:
             raise ValueError(f"{name} needs a decomposition")
         if name == "one-level":
             return AdditiveSchwarz(A, decomposition.index_sets(overlapping=True))
-        if name == "gdsw":
-            return TwoLevelSchwarz(A, decomposition)
         mask = translation_mask if translation_mask is not None else np.ones(A.shape[0], dtype=bool)
-        return TwoLevelSchwarz(A, decomposition, dof_mask=mask)
+        return TwoLevelSchwarz(A, decomposition, kind="rgdsw" if name == "rgdsw" else "gdsw",
+                               rotation=name != "gdsw-norot", geometry=geometry,
+                               translation_mask=mask, interface_grouping=interface_grouping)
     raise ValueError(f"unknown preconditioner {name!r}; choose one of {', '.join(PRECONDITIONERS)}")
