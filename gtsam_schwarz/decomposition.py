@@ -94,7 +94,7 @@ def metis_partition(structure: GraphStructure, n_subdomains: int, seed: int = 0)
     adj = structure.adjacency()
     adj.sort_indices()
     opts = pymetis.Options(seed=seed)
-    _, parts = pymetis.part_graph(N, xadj=adj.indptr, adjncy=adj.indices, options=opts)
+    _, parts = pymetis.part_graph(N, adjacency=pymetis.CSRAdjacency(adj.indptr, adj.indices), options=opts)
     parts = np.asarray(parts, dtype=np.int64)
     return parts[structure.edges[:, 1]]
 
