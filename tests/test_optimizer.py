@@ -129,3 +129,58 @@ def test_step_that_increases_error_is_rejected():
 def test_bad_params_are_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):
         SchwarzParams(**kwargs)
+
+
+def gtsam_lm(graph, initial):
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, initial, gtsam.LevenbergMarquardtParams())
+    return opt.optimize()
+
+
+@pytest.mark.parametrize("name", ["gdsw", "rgdsw", "one-level"])
+def test_m3500_levenberg_marquardt_matches_gtsam_lm(m3500, name):
+    graph, initial, _, _ = m3500
+    ref = graph.error(gtsam_lm(graph, initial))
+    opt = SchwarzOptimizer(graph, initial, SchwarzParams(method="lm", preconditioner=name,
+                                                         partition="metis", subdomains=8))
+    opt.optimize()
+    assert opt.converged
+    assert opt.error() <= ref * (1 + 1e-6)
+    assert opt.summary()["subdomains"] == 8
+
+
+@pytest.mark.parametrize("name", ["block-jacobi", "gdsw", "direct"])
+def test_model_problem_levenberg_marquardt_matches_gtsam_lm(name):
+    prob = square_loops(8, 8, sigma=0.05, seed=3)
+    ref = prob.graph.error(gtsam_lm(prob.graph, prob.initial))
+    opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(method="lm", preconditioner=name, subdomains=8))
+    opt.optimize()
+    assert opt.error() <= ref * (1 + 1e-6)
+    assert all(h["lambda"] > 0 for h in opt.history)
+
+
+def test_levenberg_marquardt_rejects_bad_steps_and_raises_lambda():
+    prob = square_loops(32, 16, sigma=0.1, seed=0)  # Gauss-Newton's first step increases the error
+    opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(method="lm", subdomains=32, max_iterations=60))
+    opt.optimize()
+    rejected = [h for h in opt.history if not h["accepted"]]
+    assert rejected, "expected at least one rejected LM step"
+    for h in rejected:
+        later = [g for g in opt.history if g["iteration"] == h["iteration"] and g is not h]
+        assert all(g["lambda"] > h["lambda"] for g in later if opt.history.index(g) > opt.history.index(h))
+    ref = prob.graph.error(gtsam_lm(prob.graph, prob.initial))
+    assert opt.error() <= ref * (1 + 1e-6)
+
+
+def test_inexact_newton_saves_cg_iterations_on_m3500(m3500):
+    graph, initial, _, _ = m3500
+    ref = graph.error(gtsam_lm(graph, initial))
+    runs = {}
+    for forcing in ("none", "eisenstat-walker"):
+        opt = SchwarzOptimizer(graph, initial, SchwarzParams(method="lm", partition="metis", subdomains=8,
+                                                             forcing=forcing))
+        opt.optimize()
+        runs[forcing] = opt
+    exact, inexact = runs["none"], runs["eisenstat-walker"]
+    assert inexact.summary()["cg_total"] < exact.summary()["cg_total"]
+    assert any(h["cg_tolerance"] > 1e-8 for h in inexact.history)
+    assert inexact.error() <= ref * (1 + 1e-6)
