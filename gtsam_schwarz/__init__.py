@@ -10,14 +10,14 @@ from .local_solvers import BlockDiagonalSolver, IndexSets, SingularLocalMatrixEr
 from .optimizer import LINEAR_SOLVERS, SchwarzOptimizer, SchwarzParams
 from .preconditioners import (PRECONDITIONERS, AdditiveSchwarz, BlockJacobi, CoarseCorrection,
                               Identity, Jacobi, TwoLevelSchwarz, make_preconditioner)
-from .problems import SquareLoops, square_loops, square_trajectory
+from .problems import HelixLoops, SquareLoops, helix_loops, square_loops, square_trajectory
 
 __all__ = [
     "AdditiveSchwarz", "BarChain", "BlockDiagonalSolver", "BlockJacobi", "CGInfo", "CoarseCorrection",
     "CoarseSpace", "Decomposition", "GraphStructure", "Identity", "IndexSets", "Interface",
-    "Jacobi", "KeyMap", "LINEAR_SOLVERS", "LinearSystem", "PRECONDITIONERS", "SchwarzOptimizer",
+    "HelixLoops", "Jacobi", "KeyMap", "LINEAR_SOLVERS", "LinearSystem", "PRECONDITIONERS", "SchwarzOptimizer",
     "SchwarzParams", "SingularLocalMatrixError", "SquareLoops", "TwoLevelSchwarz",
     "bar_chain", "export_linear_system", "find_interface", "gdsw_coarse_space", "make_preconditioner", "pcg",
-    "segment_partition", "segments", "square_loops", "square_trajectory",
+    "helix_loops", "segment_partition", "segments", "square_loops", "square_trajectory",
 ]
 __version__ = "0.1.0"

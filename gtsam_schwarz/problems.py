@@ -84,3 +84,54 @@ def square_loops(loops: int, points_per_side: int, sigma: float = 0.01, seed: in
         ground_truth.insert(t, gtsam.Pose2(x, y, th))
     return SquareLoops(graph=graph, initial=initial, ground_truth=ground_truth, loops=loops,
                        points_per_side=P, sigma=sigma, seed=seed)
+
+
+@dataclass
+class HelixLoops(SquareLoops):
+    climb: float = 0.0
+
+
+def helix_loops(loops: int, points_per_side: int, sigma: float = 0.01, seed: int = 0,
+                climb: float = 0.25, loop_sigma: float | None = None, odometry_information: float = 20.0,
+                loop_information: float = 100.0, prior_information: float = 100.0) -> HelixLoops:
+    """3D model problem: the unit-square loops stacked as a helix climbing ``climb`` per loop.
+
+    Pose3 variables; odometry moves 1/P forward and climb/(4P) up, turning 90° about z at the
+    corners; each return above the start adds a loop closure (4P(k−1), 4Pk) measuring (0, 0,
+    climb). Noise N(0, σ²) on all six tangent coordinates; weights 20·I and 100·I.
+    """
+    if loops < 1 or points_per_side < 1:
+        raise ValueError("loops and points_per_side must be >= 1")
+    rng = np.random.default_rng(seed)
+    P = points_per_side
+    flat = square_trajectory(loops, P)
+    n = len(flat)
+    z = np.arange(n) * climb / (4 * P)
+
+    def pose3(x, y, zz, th):
+        return gtsam.Pose3(gtsam.Rot3.Rz(th), np.array([x, y, zz]))
+
+    truth = [pose3(x, y, zz, th) for (x, y, th), zz in zip(flat.tolist(), z.tolist())]
+    ls = sigma * np.sqrt(odometry_information / loop_information) if loop_sigma is None else loop_sigma
+    odo_noise = gtsam.noiseModel.Isotropic.Precision(6, odometry_information)
+    loop_noise = gtsam.noiseModel.Isotropic.Precision(6, loop_information)
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.PriorFactorPose3(0, truth[0], gtsam.noiseModel.Isotropic.Precision(6, prior_information)))
+    initial, ground_truth = gtsam.Values(), gtsam.Values()
+    initial.insert(0, truth[0])
+    pose = truth[0]
+    noise = sigma * rng.standard_normal((n - 1, 6))
+    for t in range(n - 1):
+        meas = truth[t].between(truth[t + 1]).retract(noise[t])
+        graph.add(gtsam.BetweenFactorPose3(t, t + 1, meas, odo_noise))
+        pose = pose.compose(meas)
+        initial.insert(t + 1, pose)
+    loop_noise_draw = ls * rng.standard_normal((loops, 6))
+    for k in range(1, loops + 1):
+        i, j = 4 * P * (k - 1), 4 * P * k
+        meas = truth[i].between(truth[j]).retract(loop_noise_draw[k - 1])
+        graph.add(gtsam.BetweenFactorPose3(i, j, meas, loop_noise))
+    for t, p in enumerate(truth):
+        ground_truth.insert(t, p)
+    return HelixLoops(graph=graph, initial=initial, ground_truth=ground_truth, loops=loops,
+                      points_per_side=P, sigma=sigma, seed=seed, climb=climb)

@@ -184,3 +184,19 @@ def test_inexact_newton_saves_cg_iterations_on_m3500(m3500):
     assert inexact.summary()["cg_total"] < exact.summary()["cg_total"]
     assert any(h["cg_tolerance"] > 1e-8 for h in inexact.history)
     assert inexact.error() <= ref * (1 + 1e-6)
+
+
+def test_pose3_helix_levenberg_marquardt_matches_gtsam_and_gdsw_stays_bounded():
+    """3D: same answer as GTSAM's LM; GDSW iterations flat in the number of loops, one-level not."""
+    from gtsam_schwarz import helix_loops
+    cg = {}
+    for L in (4, 16):
+        prob = helix_loops(L, 8, sigma=0.01, seed=0)
+        ref = prob.graph.error(gtsam_lm(prob.graph, prob.initial))
+        for name in ("gdsw", "one-level"):
+            opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(method="lm", preconditioner=name, subdomains=L))
+            opt.optimize()
+            assert opt.error() <= ref * (1 + 1e-6)
+            cg[name, L] = opt.summary()["cg_mean"]
+    assert cg["gdsw", 16] <= 1.3 * cg["gdsw", 4] + 2
+    assert cg["one-level", 16] >= 2 * cg["one-level", 4]

@@ -56,3 +56,15 @@ def test_seeded_noise_and_dead_reckoning_initial_guess():
 def test_bad_sizes_are_refused():
     with pytest.raises(ValueError):
         square_loops(0, 4)
+
+
+def test_helix_is_3d_square_loops_climbing():
+    from gtsam_schwarz import helix_loops
+    prob = helix_loops(2, 3, sigma=0.0, loop_sigma=0.0, climb=0.5)
+    n = 4 * 3 * 2 + 1
+    assert prob.initial.size() == n and prob.graph.size() == 1 + (n - 1) + 2
+    last = prob.ground_truth.atPose3(n - 1)
+    assert np.allclose(last.translation(), [0, 0, 1.0]) and np.allclose(last.rotation().matrix(), np.eye(3))
+    assert prob.graph.error(prob.initial) == pytest.approx(0.0, abs=1e-18)
+    noisy = helix_loops(2, 3, sigma=0.02, seed=4)
+    assert noisy.graph.error(noisy.initial) > 0
