@@ -69,6 +69,7 @@ class SchwarzParams:
     diagonal_damping: bool = False
     min_model_fidelity: float = 1e-3
     verbose: bool = False
+    iteration_hook: object = None  # callable(record) after every linear solve, like GTSAM's iterationHook
 
     def __post_init__(self):
         _choice("method", self.method, METHODS)
@@ -265,6 +266,8 @@ class SchwarzOptimizer:
         return record, new_values
 
     def _log(self, record):
+        if self.params.iteration_hook is not None:
+            self.params.iteration_hook(record)
         if self.params.verbose:
             flag = "" if record["accepted"] else "  (rejected)"
             print(f"iter {record['iteration']:3d}  error {record['error']:.6e}  |g| {record['gradient_norm']:.3e}"
