@@ -4,6 +4,7 @@ from .bars import BarChain, bar_chain
 from .coarse import CoarseSpace, gdsw_coarse_space
 from .decomposition import Decomposition, GraphStructure, segment_partition, segments
 from .interface import Interface, find_interface
+from .io import GraphFileError, LoadedGraph, load_graph, write_g2o
 from .krylov import CGInfo, pcg
 from .linear_system import KeyMap, LinearSystem, export_linear_system
 from .local_solvers import BlockDiagonalSolver, IndexSets, SingularLocalMatrixError
@@ -15,9 +16,9 @@ from .problems import HelixLoops, SquareLoops, helix_loops, square_loops, square
 __all__ = [
     "AdditiveSchwarz", "BarChain", "BlockDiagonalSolver", "BlockJacobi", "CGInfo", "CoarseCorrection",
     "CoarseSpace", "Decomposition", "GraphStructure", "Identity", "IndexSets", "Interface",
-    "HelixLoops", "Jacobi", "KeyMap", "LINEAR_SOLVERS", "LinearSystem", "PRECONDITIONERS", "SchwarzOptimizer",
+    "HelixLoops", "GraphFileError", "Jacobi", "KeyMap", "LoadedGraph", "LINEAR_SOLVERS", "LinearSystem", "PRECONDITIONERS", "SchwarzOptimizer",
     "SchwarzParams", "SingularLocalMatrixError", "SquareLoops", "TwoLevelSchwarz",
     "bar_chain", "export_linear_system", "find_interface", "gdsw_coarse_space", "make_preconditioner", "pcg",
-    "helix_loops", "segment_partition", "segments", "square_loops", "square_trajectory",
+    "helix_loops", "load_graph", "write_g2o", "segment_partition", "segments", "square_loops", "square_trajectory",
 ]
 __version__ = "0.1.0"
