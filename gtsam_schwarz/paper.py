@@ -326,7 +326,8 @@ def reproduce(out_dir, settings: Settings, progress=None, command: str = "gtsam-
     import pathlib
 
     from . import plots
-    from .report import atomic_write, render
+    from .files import atomic_write
+    from .report import render
 
     out = pathlib.Path(out_dir)
     t0 = time.perf_counter()

@@ -16,7 +16,7 @@ from matplotlib.ticker import ScalarFormatter  # noqa: E402
 from .decomposition import GraphStructure, decompose  # noqa: E402
 from .linear_system import KeyMap, export_linear_system  # noqa: E402
 from .preconditioners import make_preconditioner  # noqa: E402
-from .report import atomic_write  # noqa: E402
+from .files import atomic_write  # noqa: E402
 
 COLORS = {"none": "tab:gray", "one-level": "tab:orange", "gdsw-norot": "tab:green", "gdsw": "tab:blue"}
 LABELS = {"none": "no preconditioner", "one-level": "one-level Schwarz", "gdsw-norot": "GDSW without rotation",

@@ -1,29 +1,8 @@
-"""Markdown report of the paper reproduction (all tables, paper vs ours) and atomic file output."""
+"""Markdown report of the paper reproduction: all tables, paper vs ours."""
 
 from __future__ import annotations
 
-import os
-import pathlib
-import tempfile
-
 DEFAULT_SIGMA = 0.005  # the model problem's noise (paper.Settings.sigma): see _noise_note
-
-
-def atomic_write(path, data: bytes | str) -> str:
-    """Write ``data`` to a temporary file in the same directory, then ``os.replace`` it into place."""
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    raw = data.encode("utf-8") if isinstance(data, str) else data
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(raw)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return str(path)
 
 
 def _sci(v) -> str:

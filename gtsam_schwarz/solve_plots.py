@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import os
 import pathlib
-import tempfile
 
 import gtsam
 import matplotlib
@@ -13,6 +11,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from .plots import save  # noqa: E402
+
 
 def _xy(values: gtsam.Values) -> np.ndarray:
     P2 = gtsam.utilities.extractPose2(values)
@@ -20,22 +20,6 @@ def _xy(values: gtsam.Values) -> np.ndarray:
         return P2[:, :2]
     P3 = gtsam.utilities.extractPose3(values)
     return P3[:, 9:11]
-
-
-def _save(fig, path) -> str:
-    """Save atomically: render into a temporary file beside ``path``, then rename."""
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".png")
-    os.close(fd)
-    try:
-        fig.savefig(tmp, dpi=120, bbox_inches="tight")
-        os.replace(tmp, path)
-    finally:
-        plt.close(fig)
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return str(path)
 
 
 def _vertex_colors(decomposition, n: int) -> np.ndarray:
@@ -85,7 +69,7 @@ def solve_figure(path, loaded, row) -> str:
     draw_convergence(axes[1], axes[2], {row["solver"]: row["history"]})
     axes[1].set_title("error per iteration")
     axes[2].set_title("CG residual histories")
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def trajectory_figure(path, problem, optimized, subdomains: int | None = None) -> str:
@@ -98,7 +82,7 @@ def trajectory_figure(path, problem, optimized, subdomains: int | None = None) -
     fig, ax = plt.subplots(figsize=(6, 6))
     draw_trajectory(ax, problem.initial, optimized, dec, problem.ground_truth)
     ax.set_title(f"{problem.loops} loops × {problem.points_per_side} points per side")
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def convergence_figure(path, problem, subdomains: int, names=("none", "block-jacobi", "one-level", "gdsw")) -> str:
@@ -114,4 +98,4 @@ def convergence_figure(path, problem, subdomains: int, names=("none", "block-jac
     draw_convergence(axes[0], axes[1], histories)
     axes[0].set_title("Gauss–Newton error")
     axes[1].set_title("CG residuals, every Gauss–Newton step")
-    return _save(fig, path)
+    return save(fig, path)

@@ -12,12 +12,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import pathlib
 import sys
-import tempfile
 
 from .compare import run_gtsam, run_ours
+from .files import atomic_write
 from .optimizer import SchwarzParams
 
 DATASETS_2D = ("input_M3500_g2o.g2o", "input_M3500a_g2o.g2o", "input_INTEL_g2o.g2o", "MIT.g2o",
@@ -160,22 +159,6 @@ def markdown(rows: list[dict], sweep: list[dict], command: str, helix: list[dict
     return "\n".join(out) + "\n"
 
 
-def write_atomic(path: pathlib.Path, text: str) -> None:
-    """Write ``text`` to ``path`` via a temporary file and rename, so a failure never truncates it."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m gtsam_schwarz.validation", description=__doc__.splitlines()[0])
     ap.add_argument("--datasets", type=pathlib.Path, default=None, help="folder of the datasets (../shared/datasets)")
@@ -195,7 +178,7 @@ def main(argv=None) -> int:
         sweep = [r for p in parts for r in p.get("sweep", [])]
         helix = [r for p in parts for r in p.get("helix", [])]
         commands = "; ".join(p.get("command", "?") for p in parts)
-        write_atomic(args.out, markdown(rows, sweep, commands, helix))
+        atomic_write(args.out, markdown(rows, sweep, commands, helix))
         print(f"wrote {args.out}")
         return 0
     folder = args.datasets or default_datasets_dir()
@@ -213,7 +196,7 @@ def main(argv=None) -> int:
             sweep += subdomain_sweep(folder / name)
     helix = [] if args.no_helix or args.dimension == "2" else helix_scaling()
     command = "python -m gtsam_schwarz.validation" + (" " + " ".join(given) if given else "")
-    write_atomic(args.out, markdown(rows, sweep, command.strip(), helix))
+    atomic_write(args.out, markdown(rows, sweep, command.strip(), helix))
     if args.json:
         print(json.dumps({"command": command.strip(), "rows": rows, "sweep": sweep, "helix": helix}, default=float))
     else:
