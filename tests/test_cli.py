@@ -121,3 +121,15 @@ def test_demo_writes_plots(tmp_path):
     for name in ("demo_trajectory.png", "demo_convergence.png"):
         assert (tmp_path / name).stat().st_size > 1000
         assert name in proc.stdout
+
+
+@pytest.mark.parametrize("pre", ["gdsw", "gdsw-norot", "rgdsw", "one-level", "block-jacobi", "direct"])
+def test_solve_3d_file_every_preconditioner(pre):
+    path = dataset("smallGrid3D.g2o")
+    proc = cli("solve", path, "--json", "--preconditioner", pre, "--subdomains", 4)
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout)
+    assert report["dimension"] == 3 and report["poses"] == 125
+    loaded = load_graph(path)
+    ref = gtsam.LevenbergMarquardtOptimizer(loaded.graph, loaded.initial, gtsam.LevenbergMarquardtParams()).optimize()
+    assert report["final_error"] <= loaded.graph.error(ref) * (1 + 1e-6)
