@@ -32,7 +32,7 @@ def add_paper(sub) -> None:
                    help="odometry noise of the model problem (default 0.005)")
     p.add_argument("--seed", type=nonnegative_int, default=0, help="noise seed (default 0)")
     p.add_argument("--budget", type=positive_float, default=None, metavar="SECONDS",
-                   help="wall-clock budget per model case (default 300, quick 30)")
+                   help="wall-clock budget per model case (default 600, quick 30)")
     p.set_defaults(run=run_paper)
 
 
@@ -74,7 +74,7 @@ def run_paper(args) -> int:
         raise UsageError(f"--out {args.out}: not writable")
     settings = Settings(quick=args.quick, seed=args.seed,
                         **({"sigma": args.sigma} if args.sigma is not None else {}),
-                        case_seconds=args.budget or (30.0 if args.quick else 300.0),
+                        case_seconds=args.budget or (30.0 if args.quick else 600.0),
                         cg_cap=20_000 if args.quick else 100_000)
     tty = sys.stderr.isatty()
     progress = (lambda msg: print(msg, file=sys.stderr, flush=True)) if tty else None

@@ -83,6 +83,10 @@ def scalability_figure(path, model: list[dict], paper_weak, paper_null, pps: int
             if rows:
                 ax2.plot([r["loops"] for r in rows], [r["cg_mean"] for r in rows], styles[ov], color=COLORS[pc],
                          alpha=1.0 - 0.25 * (ov - 1), label=f"{LABELS[pc]}, overlap {ov}")
+                cap = [(r["loops"], r["cg_mean"]) for r in rows if r["capped"]]
+                if cap:
+                    ax2.plot(*zip(*cap), "o", mfc="white", color=COLORS[pc], ms=10,
+                             label=f"{LABELS[pc]}, overlap {ov}: capped")
     ax2.set(xlabel="loops = subdomains", ylabel="average CG iterations per GN step",
             title="Overlap 1, 2, 3 (beyond the paper)")
     _plain_log_axes(ax2)
@@ -145,7 +149,7 @@ def hat_figure(path, problem) -> str:
             ax.axvline(k * problem.points_per_side, color="0.85", lw=0.6, zorder=0)
     axes[-1].set_xlabel("pose index along the trajectory (thin lines: corners of the square)")
     fig.legend(loc="lower center", ncol=len(gamma) + 1, fontsize=8, bbox_to_anchor=(0.5, -0.02))
-    fig.tight_layout(rect=(0, 0.04, 1, 1))
+    fig.tight_layout(rect=(0, 0.04, 1, 0.93))
     fig.suptitle(f"GDSW coarse basis functions vs hat functions ({problem.loops} loops x "
                  f"{problem.points_per_side} points per side, one subdomain per loop, overlap 1)\n"
                  "first loop: pose 0 is held by the prior and tied to the first interface pose by its loop "

@@ -77,7 +77,7 @@ def _bars_section(bars: list[dict]) -> list[str]:
                 "past a rounding boundary (1.99521 vs 1.995, 1.21451e-3 vs 1.215e-3). None of the variants tried "
                 "moved them without breaking other entries: "
                 "stopping on ‖r‖, ‖M⁻¹r‖ or the natural norm, x₀ = 0, dead reckoning or random, Dirichlet rows "
-                "kept or eliminated, and five placements of the Dirichlet bars / subdomain cuts.", ""]
+                "kept or eliminated, and several edge- and node-based placements of the Dirichlet bars and subdomain cuts.", ""]
     return out
 
 
