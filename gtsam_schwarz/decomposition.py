@@ -175,7 +175,7 @@ class Decomposition:
 def segments(structure: GraphStructure, n_subdomains: int, overlap: int = 1,
              grow_along: str = "odometry") -> Decomposition:
     """The default decomposition: contiguous trajectory segments with δ-layer overlap."""
-    return Decomposition.build(structure, segment_partition(structure, n_subdomains), overlap, grow_along)
+    return decompose(structure, n_subdomains, "segments", overlap, grow_along)
 
 
 def decompose(structure: GraphStructure, n_subdomains: int, partition: str = "segments",

@@ -93,9 +93,7 @@ class BlockJacobi(AdditiveSchwarz):
     """One block per variable (pose): Schwarz with nonoverlapping single-pose subdomains."""
 
     def __init__(self, A, offsets: np.ndarray):
-        sizes = np.diff(offsets)
         super().__init__(A, IndexSets(indices=np.arange(int(offsets[-1])), ptr=np.asarray(offsets), n=A.shape[0]))
-        self.block_sizes = sizes
 
 
 class CoarseCorrection(Preconditioner):
