@@ -1,4 +1,4 @@
-"""The ``gtsam-schwarz`` command line: solve, compare, synth, demo (commands.py) and paper."""
+"""The ``gtsam-schwarz`` command line: solve, compare, synth, demo (commands.py), paper and bench (bench.py)."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import os
 import pathlib
 import sys
 
+from .bench import add_bench
 from .commands import UsageError, add_all, nonnegative_int, positive_float
 
 
@@ -98,6 +99,7 @@ def build_parser() -> Parser:
     sub.required = True
     add_all(sub)
     add_paper(sub)
+    add_bench(sub)
     return parser
 
 

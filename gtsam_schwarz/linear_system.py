@@ -169,3 +169,56 @@ def export_linear_system(lin: gtsam.GaussianFactorGraph, keymap: KeyMap) -> Line
     H.sort_indices()
     g = -(Jt @ b)
     return LinearSystem(H=H, g=g, J=J, b=b)
+
+
+class HessianPattern:
+    """The full block sparsity of H: every entry of every block (u, v) of coupled variables.
+
+    ``sparseJacobian_`` drops entries below 1e-12 and scipy's products drop exact zeros, so the
+    pattern of JᵀJ can change between linearization points (e.g. at the zero-residual dead-reckoning
+    start). Placing H into this fixed pattern lets everything symbolic downstream (subdomain
+    gathers, orderings, harmonic-extension plans) be computed once per graph.
+    """
+
+    def __init__(self, H: sp.csr_matrix, offsets: np.ndarray):
+        offsets = np.asarray(offsets, dtype=np.int64)
+        nv, n = len(offsets) - 1, int(offsets[-1])
+        owner = np.repeat(np.arange(nv), np.diff(offsets))
+        E = sp.csr_matrix((np.ones(n), (np.arange(n), owner)), shape=(n, nv))
+        C = sp.coo_matrix(H)
+        blocks = sp.csr_matrix((np.ones(C.nnz + nv), (np.r_[owner[C.row], np.arange(nv)],
+                                                      np.r_[owner[C.col], np.arange(nv)])), shape=(nv, nv))
+        F = (E @ blocks @ E.T).tocsr()
+        F.sort_indices()
+        self.indptr, self.indices, self.shape = F.indptr, F.indices, F.shape
+        rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(F.indptr))
+        self._keys = rows * n + F.indices
+        self.diagonal = np.searchsorted(self._keys, np.arange(n, dtype=np.int64) * (n + 1))
+
+        self._last = None  # (indptr, indices, positions) of the last pattern placed into this one
+
+    def fit(self, H: sp.csr_matrix) -> sp.csr_matrix | None:
+        """H with the fixed pattern (explicit zeros where needed); None if H has entries outside it.
+
+        The positions of H's entries are found by a search once per pattern of H (JᵀJ keeps one
+        pattern after the first step), afterwards by comparing two arrays."""
+        H = sp.csr_matrix(H)
+        H.sort_indices()
+        last = self._last
+        if last is None or not (np.array_equal(H.indptr, last[0]) and np.array_equal(H.indices, last[1])):
+            n = self.shape[0]
+            rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(H.indptr))
+            keys = rows * n + H.indices
+            at = np.minimum(np.searchsorted(self._keys, keys), len(self._keys) - 1)
+            if np.any(self._keys[at] != keys):
+                return None
+            self._last = last = (H.indptr.copy(), H.indices.copy(), at)
+        data = np.zeros(len(self._keys))
+        data[last[2]] = H.data
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=self.shape)
+
+    def damped(self, H: sp.csr_matrix, d: np.ndarray) -> sp.csr_matrix:
+        """H + diag(d) without changing the pattern (scipy's sum would drop explicit zeros)."""
+        data = H.data.copy()
+        data[self.diagonal] += d
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=self.shape)

@@ -12,12 +12,13 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 import scipy.sparse as sp
+from threadpoolctl import threadpool_limits
 
 from .decomposition import PARTITIONS, GraphStructure, decompose, default_subdomains
 from .krylov import pcg
-from .linear_system import KeyMap, LinearSystem, export_linear_system
-from .local_solvers import factorize
-from .preconditioners import PRECONDITIONERS, make_preconditioner
+from .linear_system import HessianPattern, KeyMap, LinearSystem, export_linear_system
+from .local_solvers import SparseCholesky, SparsityPattern
+from .preconditioners import PRECONDITIONERS, TwoLevelSchwarz, make_preconditioner
 
 LINEAR_SOLVERS = PRECONDITIONERS + ("direct",)
 METHODS = ("gn", "lm")
@@ -56,6 +57,8 @@ class SchwarzParams:
     cg_max_iterations: int | None = None  # None: 10 × the system dimension
     forcing: str = "none"  # none | eisenstat-walker
     forcing_max: float = 1e-3  # measured: 0.1 and 0.01 let LM drift to worse minima on M3500a
+    lagged_preconditioner: bool = False  # keep M (all its numbers) across linear solves while CG stays fast
+    lag_growth: float = 1.5  # lagged: recompute M once CG needs this many times its count after the last build
     max_iterations: int = 100
     gradient_tol: float = 1e-8
     relative_gradient_tol: float | None = None  # None: 1e-6 for gn, 0 (off) for lm
@@ -91,6 +94,8 @@ class SchwarzParams:
             self.relative_gradient_tol = 1e-6 if self.method == "gn" else 0.0
         if not self.lambda_factor > 1:
             raise ValueError(f"lambda_factor must be > 1, got {self.lambda_factor}")
+        if not self.lag_growth >= 1:
+            raise ValueError(f"lag_growth must be >= 1, got {self.lag_growth}")
 
 
 @dataclass
@@ -104,6 +109,7 @@ class SolveResult:
     tolerance: float = float("nan")
     setup_seconds: float = 0.0
     coarse_size: int = 0
+    rebuilt: bool = True  # the preconditioner's numbers were recomputed for this matrix
 
 
 class SchwarzOptimizer:
@@ -131,6 +137,10 @@ class SchwarzOptimizer:
         self._forcing_prev = None  # (gradient norm, η) of the previous linear solve
         self._lambda = self.params.lambda_initial
         self._exact_next = False  # inexact Newton: the next solve must be exact (safeguard)
+        self._preconditioner = None  # kept across linear solves: symbolic work is reused
+        self._direct = None
+        self._pattern = None  # HessianPattern of the graph
+        self._cg_after_build = None  # CG iterations of the first solve after the last numeric build
 
     # -- GTSAM-like accessors ------------------------------------------------------------
     def values(self) -> gtsam.Values:
@@ -175,35 +185,81 @@ class SchwarzOptimizer:
             eta = min(eta, p.forcing_max)
         return max(eta, p.cg_tol)
 
+    def _direct_solve(self, H, rhs):
+        H = sp.csr_matrix(H)
+        if self._direct is None or not self._direct[0].matches(H):
+            self._direct = (SparsityPattern(H), SparseCholesky(H, "the Gauss-Newton matrix"))
+        else:
+            self._direct[1].refactor(H)
+        return self._direct[1].solve(rhs)
+
+    def _lag_cap(self) -> int | None:
+        """Lagged preconditioner: CG may use the previous M for at most this many iterations
+        (``lag_growth`` × its count right after the last build); None: build M anew."""
+        p = self.params
+        if not p.lagged_preconditioner or self._preconditioner is None or self._cg_after_build is None:
+            return None
+        return int(p.lag_growth * self._cg_after_build) + 2
+
+    def preconditioner(self, H, lag: bool = False):
+        """The preconditioner for H: built on the first call, afterwards updated in place (same
+        subdomains, interface, submatrix patterns and symbolic factorizations; new numbers).
+        ``lag=True`` returns the previous one unchanged."""
+        p = self.params
+        M = self._preconditioner
+        rigid = p.preconditioner in _TWO_LEVEL and p.coarse_modes == "rigid"
+        geometry = (lambda: self.keymap.geometry(self._values) if rigid else None)
+        self._rebuilt = not (lag and M is not None)
+        if M is None:
+            M = make_preconditioner(p.preconditioner, H, self._decompose(H), self._translation_mask,
+                                    geometry(), p.interface_grouping)
+            self._preconditioner = M
+        elif not lag:
+            if isinstance(M, TwoLevelSchwarz):
+                M.update(H, geometry())
+            else:
+                M.update(H)
+        return M
+
     def solve_linear(self, H, rhs, tol: float | None = None) -> SolveResult:
-        """Solve H x = rhs with the configured preconditioned CG (or the direct reference)."""
+        """Solve H x = rhs with the configured preconditioned CG (or the direct reference).
+
+        A lagged preconditioner that lets CG exceed its iteration cap is rebuilt for H and CG
+        continues from where it stopped (warm start)."""
         p = self.params
         tol = p.cg_tol if tol is None else tol
         t0 = time.perf_counter()
         if p.preconditioner == "direct":
-            solve = factorize(sp.csc_matrix(H), "the Gauss-Newton matrix")
-            t1 = time.perf_counter()
-            return SolveResult(x=solve(rhs), setup_seconds=t1 - t0, tolerance=0.0)
-        dec = self._decompose(H)
-        geometry = None
-        if p.preconditioner in _TWO_LEVEL and p.coarse_modes == "rigid":
-            geometry = self.keymap.geometry(self._values)
-        M = make_preconditioner(p.preconditioner, H, dec, self._translation_mask, geometry,
-                                p.interface_grouping)
-        t1 = time.perf_counter()
-        x, info = pcg(H, rhs, None if p.preconditioner == "none" else M, tol=tol,
-                      maxiter=p.cg_max_iterations)
+            x = self._direct_solve(H, rhs)
+            return SolveResult(x=x, setup_seconds=time.perf_counter() - t0, tolerance=0.0)
+        cap = self._lag_cap()
+        M = self.preconditioner(H, lag=cap is not None)
+        setup = time.perf_counter() - t0
+        use = None if p.preconditioner == "none" else M
+        x, info = pcg(H, rhs, use, tol=tol, maxiter=cap if cap is not None else p.cg_max_iterations)
+        iterations, residuals = info.iterations, list(info.residuals)
+        if cap is not None and not info.converged:
+            t2 = time.perf_counter()
+            M = use = self.preconditioner(H) if use is not None else None
+            setup += time.perf_counter() - t2
+            x, info = pcg(H, rhs, use, tol=tol, maxiter=p.cg_max_iterations, x0=x)
+            iterations += info.iterations
+            residuals += info.residuals[1:]
+        if self._rebuilt:
+            self._cg_after_build = info.iterations
         coarse = getattr(M, "coarse_space", None)
-        return SolveResult(x=x, iterations=info.iterations, converged=info.converged,
+        return SolveResult(x=x, iterations=iterations, converged=info.converged,
                            lambda_min=info.lambda_min, lambda_max=info.lambda_max,
-                           residuals=info.residuals, tolerance=tol, setup_seconds=t1 - t0,
-                           coarse_size=coarse.size if coarse is not None else 0)
+                           residuals=residuals, tolerance=tol, setup_seconds=setup,
+                           coarse_size=coarse.size if coarse is not None else 0,
+                           rebuilt=self._rebuilt)
 
     def _linearize(self) -> tuple[LinearSystem, dict]:
         t0 = time.perf_counter()
         lin = self.graph.linearize(self._values)
         t1 = time.perf_counter()
         system = export_linear_system(lin, self.keymap)
+        system.H = self._fixed_pattern(system.H)
         t2 = time.perf_counter()
         return system, {"linearize": t1 - t0, "export": t2 - t1}
 
@@ -221,6 +277,14 @@ class SchwarzOptimizer:
             return True
         return False
 
+    def _fixed_pattern(self, H):
+        """H in the graph's full block pattern, so symbolic work is reused (see HessianPattern)."""
+        fitted = self._pattern.fit(H) if self._pattern is not None else None
+        if fitted is None:
+            self._pattern = HessianPattern(H, self.keymap.offsets)
+            fitted = self._pattern.fit(H)
+        return fitted
+
     def _damped(self, H, lam: float):
         if lam == 0.0:
             return H
@@ -228,7 +292,7 @@ class SchwarzOptimizer:
             d = np.clip(H.diagonal(), 1e-6, 1e32)
         else:
             d = np.ones(H.shape[0])
-        return (H + sp.diags(lam * d)).tocsr()
+        return self._pattern.damped(H, lam * d)
 
     def _try_step(self, system: LinearSystem, gnorm: float, lam: float, iteration: int,
                   seconds: dict) -> tuple[dict, gtsam.Values]:
@@ -251,12 +315,14 @@ class SchwarzOptimizer:
             "step_norm": float(np.linalg.norm(dx)),
             "lambda": lam,
             "model_fidelity": (self._error - new_error) / -predicted if predicted < 0 else float("nan"),
+            "predicted_decrease": -predicted,
             "cg_iterations": result.iterations,
             "cg_converged": result.converged,
             "cg_tolerance": result.tolerance,
             "lambda_min": result.lambda_min,
             "lambda_max": result.lambda_max,
             "coarse_size": result.coarse_size,
+            "preconditioner_rebuilt": result.rebuilt,
             "cg_residuals": result.residuals,
             "accepted": False,
             "seconds": {"linearize": seconds.get("linearize", 0.0), "export": seconds.get("export", 0.0),
@@ -303,7 +369,13 @@ class SchwarzOptimizer:
         """One nonlinear iteration (GN step, or LM until a step is accepted or λ is too large).
 
         Returns False when the loop must stop (a stopping rule fired or no step was accepted).
+        BLAS runs single-threaded meanwhile: our dense operations are small, and idle OpenBLAS
+        threads spinning beside CHOLMOD's OpenMP threads slowed setup and CG by up to 20× (measured).
         """
+        with threadpool_limits(limits=1, user_api="blas"):
+            return self._iterate()
+
+    def _iterate(self) -> bool:
         p = self.params
         iteration = self.iterations() + 1
         system, seconds = self._linearize()
@@ -335,6 +407,14 @@ class SchwarzOptimizer:
                 self._values, self._error = new_values, record["error"]
                 self._lambda = max(self._lambda / p.lambda_factor, p.lambda_lower_bound)
                 return not self._error_converged(before, record["cg_tolerance"])
+            if record["cg_tolerance"] <= p.cg_tol and record["predicted_decrease"] <= max(
+                    p.absolute_error_tol, p.relative_error_tol * before):
+                # the quadratic model promises less than the error tolerances: nothing left to gain
+                # (GTSAM would raise λ to its bound here, wasting solves on Jacobian round-off)
+                self.converged = True
+                self.stop_reason = (f"predicted decrease {record['predicted_decrease']:.3e} below the "
+                                    f"error tolerance: converged")
+                return False
             self._exact_next = True  # retry the rejected step with an exact solve
             self._lambda *= p.lambda_factor
             if self._lambda > p.lambda_upper_bound:

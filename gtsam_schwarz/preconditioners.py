@@ -10,7 +10,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import LinearOperator
 
-from .coarse import CoarseSpace, gdsw_coarse_space
+from .coarse import CoarseSpace, HarmonicExtension, gdsw_coarse_space
 from .decomposition import Decomposition
 from .interface import find_interface
 from .linear_system import VertexGeometry
@@ -32,6 +32,11 @@ class Preconditioner:
 
     def __add__(self, other: "Preconditioner") -> "Preconditioner":
         return SumOperator([self, other])
+
+    def update(self, A) -> "Preconditioner":
+        """Rebuild for a matrix with new numbers (subclasses reuse their symbolic work)."""
+        self.__init__(A)
+        return self
 
     def aspreconditioner(self) -> LinearOperator:
         return LinearOperator((self.n, self.n), matvec=self.matvec, rmatvec=self.matvec, dtype=float)
@@ -85,6 +90,11 @@ class AdditiveSchwarz(Preconditioner):
         self.sets = sets
         self.solver = BlockDiagonalSolver(A, sets)
 
+    def update(self, A):
+        """Same subdomains, new numbers: numeric refactorization only."""
+        self.solver.update(A)
+        return self
+
     def matvec(self, x):
         return self.solver.matvec(x)
 
@@ -110,11 +120,14 @@ class CoarseCorrection(Preconditioner):
         self.coarse = coarse
         self.n = coarse.Phi.shape[0]
         self.PhiT = coarse.Phi.T.tocsr()
+        self._factorize(coarse.A0)
+
+    def _factorize(self, A0):
         self.dropped = 0
         try:
-            self._solve = factorize(coarse.A0, "the coarse matrix A_0")
+            self._solve = factorize(A0, "the coarse matrix A_0")
         except SingularLocalMatrixError:
-            self._solve = self._range_solver(coarse.A0)
+            self._solve = self._range_solver(A0)
 
     def _range_solver(self, A0):
         nc = A0.shape[0]
@@ -142,12 +155,24 @@ class TwoLevelSchwarz(SumOperator):
                  geometry: VertexGeometry | None = None, translation_mask: np.ndarray | None = None,
                  interface_grouping: str = "components"):
         self.decomposition = decomposition
+        self.kind, self.rotation, self.translation_mask = kind, rotation, translation_mask
         self.interface = find_interface(decomposition, interface_grouping)
-        self.coarse_space = gdsw_coarse_space(A, decomposition, self.interface, kind, geometry,
-                                              rotation, translation_mask)
+        self.extension = HarmonicExtension(decomposition, self.interface)
         self.one_level = AdditiveSchwarz(A, decomposition.index_sets(overlapping=True))
+        self._build_coarse(A, geometry)
+
+    def _build_coarse(self, A, geometry):
+        self.coarse_space = gdsw_coarse_space(A, self.decomposition, self.interface, self.kind, geometry,
+                                              self.rotation, self.translation_mask, self.extension)
         self.coarse = CoarseCorrection(self.coarse_space)
         super().__init__([self.one_level, self.coarse])
+
+    def update(self, A, geometry: VertexGeometry | None = None):
+        """New numbers in A (and poses in ``geometry``): interface, index sets, submatrix patterns
+        and symbolic factorizations are kept; numbers, Φ and A_0 are recomputed."""
+        self.one_level.update(A)
+        self._build_coarse(A, geometry)
+        return self
 
 
 def make_preconditioner(name: str, A, decomposition: Decomposition | None = None,
