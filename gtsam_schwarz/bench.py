@@ -313,7 +313,7 @@ def _header(report: dict) -> list[str]:
             f"- date: {report['date']}",
             f"- machine: {m['cpu_count']} CPUs ({m['cpu']}), {m['memory_gib']} GiB, {m['platform']}",
             f"- versions: Python {m['python']}, gtsam {m['gtsam']}, numpy {m['numpy']}, scipy {m['scipy']}, "
-            f"gtsam-schwarz {m['gtsam_schwarz']}",
+            f"gtsam-schwarz {m['gtsam_schwarz']}; local factorizations: {m.get('sparse_backend', '?')}",
             f"- ours: `SchwarzParams({', '.join(f'{k}={v!r}' for k, v in report['params'].items())})`; "
             "GTSAM: `LevenbergMarquardtOptimizer` with default parameters (Cholesky; PCG with block-Jacobi; "
             "SubgraphSolver); all stop on relative/absolute error decrease 1e-5 or 100 iterations",
@@ -364,7 +364,15 @@ def machine() -> dict:
     return {"cpu_count": os.cpu_count(), "cpu": _proc_field("/proc/cpuinfo", "model name"),
             "memory_gib": round(int(mem[0]) / 2**20, 1) if mem and mem[0].isdigit() else None,
             "platform": platform.platform(), "python": platform.python_version(), "gtsam": _version("gtsam"),
-            "numpy": _version("numpy"), "scipy": _version("scipy"), "gtsam_schwarz": _version("gtsam-schwarz")}
+            "numpy": _version("numpy"), "scipy": _version("scipy"), "gtsam_schwarz": _version("gtsam-schwarz"),
+            "sparse_backend": _sparse_backend()}
+
+
+def _sparse_backend() -> str:
+    """Which sparse Cholesky our local solves use (CHOLMOD when scikit-sparse is installed)."""
+    from .local_solvers import SPARSE_BACKEND
+
+    return SPARSE_BACKEND + (f" (scikit-sparse {_version('scikit-sparse')})" if SPARSE_BACKEND == "cholmod" else "")
 
 
 def _parse_value(text: str):

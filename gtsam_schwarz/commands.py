@@ -85,7 +85,7 @@ def add_solve(sub) -> None:
     p.add_argument("--method", choices=METHODS, default="lm", help="lm (default) or gn")
     p.add_argument("--preconditioner", choices=LINEAR_SOLVERS, default="gdsw")
     p.add_argument("--subdomains", type=positive_int, default=None, help="default: about 500 poses each")
-    p.add_argument("--partition", choices=PARTITIONS, default="metis")
+    p.add_argument("--partition", choices=PARTITIONS, default="auto")
     p.add_argument("--overlap", type=nonnegative_int, default=1)
     p.add_argument("--cg-tol", type=positive_float, default=1e-8)
     p.add_argument("--max-iterations", type=nonnegative_int, default=100)
@@ -154,7 +154,7 @@ def run_solve(args) -> int:
 OURS = ("gdsw", "one-level", "block-jacobi")
 
 
-def compare_rows(graph, initial, ours=OURS, gtsam_solvers=GTSAM_SOLVERS, method="lm", partition="metis",
+def compare_rows(graph, initial, ours=OURS, gtsam_solvers=GTSAM_SOLVERS, method="lm", partition="auto",
                  subdomains=None, progress=None) -> list[dict]:
     """Our solver with each preconditioner and GTSAM's optimizers on the same graph."""
     rows = []
@@ -198,7 +198,7 @@ def add_compare(sub) -> None:
     p = sub.add_parser("compare", help="our solver next to GTSAM's optimizers on one file")
     p.add_argument("file")
     p.add_argument("--subdomains", type=positive_int, default=None)
-    p.add_argument("--partition", choices=PARTITIONS, default="metis")
+    p.add_argument("--partition", choices=PARTITIONS, default="auto")
     p.add_argument("--json", action="store_true", help='print {"rows": [...]} as one JSON object')
     p.set_defaults(run=run_compare)
 

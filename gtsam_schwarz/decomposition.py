@@ -99,7 +99,31 @@ def metis_partition(structure: GraphStructure, n_subdomains: int, seed: int = 0)
     return parts[structure.edges[:, 1]]
 
 
-PARTITIONS = ("segments", "metis")
+PARTITIONS = ("auto", "segments", "metis")
+
+
+def interface_count(structure: GraphStructure, edge_subdomain: np.ndarray) -> int:
+    """Vertices whose edges lie in two or more subdomains (the size of Γ for this edge partition)."""
+    e = structure.edges
+    v = np.r_[e[:, 0], e[:, 1]]
+    part = np.r_[edge_subdomain, edge_subdomain]
+    pairs = np.unique(v * np.int64(max(int(part.max(initial=0)) + 1, 1)) + part)
+    verts = pairs // max(int(part.max(initial=0)) + 1, 1)
+    return int(np.count_nonzero(np.bincount(verts, minlength=structure.n_vertices) >= 2))
+
+
+def auto_partition(structure: GraphStructure, n_subdomains: int) -> np.ndarray:
+    """Trajectory segments or METIS, whichever has the smaller interface (so the smaller coarse space).
+
+    Segments are the paper's choice and win on its model problem (one loop per subdomain, 2
+    interface poses each); on real datasets with loop closures across the whole map they cut
+    far more (M3500: 915 coarse functions against 252 with METIS)."""
+    seg = segment_partition(structure, n_subdomains)
+    try:
+        met = metis_partition(structure, n_subdomains)
+    except ImportError:  # pymetis missing: segments
+        return seg
+    return seg if interface_count(structure, seg) <= interface_count(structure, met) else met
 
 
 def default_subdomains(n_vertices: int, subdomain_size: int = 500) -> int:
@@ -178,10 +202,12 @@ def segments(structure: GraphStructure, n_subdomains: int, overlap: int = 1,
     return decompose(structure, n_subdomains, "segments", overlap, grow_along)
 
 
-def decompose(structure: GraphStructure, n_subdomains: int, partition: str = "segments",
+def decompose(structure: GraphStructure, n_subdomains: int, partition: str = "auto",
               overlap: int = 1, grow_along: str = "odometry") -> Decomposition:
-    """Edge partition by ``partition`` ("segments" or "metis"), then δ-layer overlap."""
-    if partition == "segments":
+    """Edge partition by ``partition`` ("auto", "segments" or "metis"), then δ-layer overlap."""
+    if partition == "auto":
+        part = auto_partition(structure, n_subdomains)
+    elif partition == "segments":
         part = segment_partition(structure, n_subdomains)
     elif partition == "metis":
         part = metis_partition(structure, n_subdomains)

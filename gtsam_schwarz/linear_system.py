@@ -116,6 +116,9 @@ class KeyMap:
         if x.shape != (self.dim,):
             raise ValueError(f"step has shape {x.shape}, expected ({self.dim},)")
         vv = gtsam.VectorValues()
+        if self.size and np.all(self.dims == self.dims[0]):  # one row per key: map, no slicing
+            list(map(vv.insert, self.keys.tolist(), x.reshape(self.size, int(self.dims[0]))))
+            return vv
         for key, lo, hi in zip(self.keys.tolist(), self.offsets[:-1].tolist(), self.offsets[1:].tolist()):
             vv.insert(key, x[lo:hi])
         return vv

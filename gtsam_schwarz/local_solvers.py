@@ -92,7 +92,7 @@ class SparseCholesky:
     def __init__(self, K: sp.spmatrix, what: str = "local matrix", backend: str | None = None):
         self.what = what
         self.backend = backend or SPARSE_BACKEND
-        K = sp.csc_matrix(K)
+        K = K.T if sp.isspmatrix_csr(K) else sp.csc_matrix(K)
         self.n = K.shape[0]
         self._factor = None
         if self.backend == "cholmod" and self.n:
@@ -103,7 +103,8 @@ class SparseCholesky:
         """New numbers, same pattern (CHOLMOD keeps its ordering and supernodes)."""
         if self.n == 0:
             return self
-        K = sp.csc_matrix(K)
+        # K is symmetric: the transpose of its CSR form is its CSC form, without a conversion
+        K = K.T if sp.isspmatrix_csr(K) else sp.csc_matrix(K)
         _check_finite(K, self.what)
         if self.backend == "cholmod":
             try:

@@ -19,6 +19,7 @@ from .krylov import pcg
 from .linear_system import HessianPattern, KeyMap, LinearSystem, export_linear_system
 from .local_solvers import SparseCholesky, SparsityPattern
 from .preconditioners import PRECONDITIONERS, TwoLevelSchwarz, make_preconditioner
+from .runtime import tune_allocator
 
 LINEAR_SOLVERS = PRECONDITIONERS + ("direct",)
 METHODS = ("gn", "lm")
@@ -48,7 +49,7 @@ class SchwarzParams:
     preconditioner: str = "gdsw"  # none | jacobi | block-jacobi | one-level | gdsw | gdsw-norot | rgdsw | direct
     subdomains: int | None = None  # None: about `subdomain_size` poses each
     subdomain_size: int = 500
-    partition: str = "segments"  # segments | metis
+    partition: str = "auto"  # auto (segments or metis, the smaller interface) | segments | metis
     overlap: int = 1
     grow_along: str = "odometry"  # odometry | all
     interface_grouping: str = "components"  # components | vertices
@@ -57,8 +58,9 @@ class SchwarzParams:
     cg_max_iterations: int | None = None  # None: 10 × the system dimension
     forcing: str = "none"  # none | eisenstat-walker
     forcing_max: float = 1e-3  # measured: 0.1 and 0.01 let LM drift to worse minima on M3500a
-    lagged_preconditioner: bool = False  # keep M (all its numbers) across linear solves while CG stays fast
-    lag_growth: float = 1.5  # lagged: recompute M once CG needs this many times its count after the last build
+    lagged_preconditioner: bool = True  # keep M (all its numbers) while the poses have hardly moved
+    lag_distance: float = 1e-2  # lagged: rebuild M once the steps since its build sum to this (max-norm)
+    lag_growth: float = 1.5  # lagged: CG cap = this × the CG count right after the build; beyond it, rebuild
     max_iterations: int = 100
     gradient_tol: float = 1e-8
     relative_gradient_tol: float | None = None  # None: 1e-6 for gn, 0 (off) for lm
@@ -94,6 +96,8 @@ class SchwarzParams:
             self.relative_gradient_tol = 1e-6 if self.method == "gn" else 0.0
         if not self.lambda_factor > 1:
             raise ValueError(f"lambda_factor must be > 1, got {self.lambda_factor}")
+        if not self.lag_distance >= 0:
+            raise ValueError(f"lag_distance must be >= 0, got {self.lag_distance}")
         if not self.lag_growth >= 1:
             raise ValueError(f"lag_growth must be >= 1, got {self.lag_growth}")
 
@@ -123,6 +127,7 @@ class SchwarzOptimizer:
                  params: SchwarzParams | None = None):
         self.graph = graph
         self.params = params or SchwarzParams()
+        tune_allocator()
         self.keymap = KeyMap.from_graph(graph, initial)
         self._values = gtsam.Values(initial)
         self._error = float(graph.error(self._values))
@@ -141,6 +146,7 @@ class SchwarzOptimizer:
         self._direct = None
         self._pattern = None  # HessianPattern of the graph
         self._cg_after_build = None  # CG iterations of the first solve after the last numeric build
+        self._moved = float("inf")  # max-norm of the accepted steps since the preconditioner's build
 
     # -- GTSAM-like accessors ------------------------------------------------------------
     def values(self) -> gtsam.Values:
@@ -194,10 +200,13 @@ class SchwarzOptimizer:
         return self._direct[1].solve(rhs)
 
     def _lag_cap(self) -> int | None:
-        """Lagged preconditioner: CG may use the previous M for at most this many iterations
-        (``lag_growth`` × its count right after the last build); None: build M anew."""
+        """Lagged preconditioner: keep the previous M while the linearization point has moved less
+        than ``lag_distance`` (sum of the steps' max-norms since M was built; a rejected LM step
+        moves nothing, only λ changes). CG may then use it for at most ``lag_growth`` × its count
+        right after the build; None: build M anew."""
         p = self.params
-        if not p.lagged_preconditioner or self._preconditioner is None or self._cg_after_build is None:
+        if (not p.lagged_preconditioner or self._preconditioner is None or self._cg_after_build is None
+                or self._moved >= p.lag_distance):
             return None
         return int(p.lag_growth * self._cg_after_build) + 2
 
@@ -246,7 +255,7 @@ class SchwarzOptimizer:
             iterations += info.iterations
             residuals += info.residuals[1:]
         if self._rebuilt:
-            self._cg_after_build = info.iterations
+            self._cg_after_build, self._moved = info.iterations, 0.0
         coarse = getattr(M, "coarse_space", None)
         return SolveResult(x=x, iterations=iterations, converged=info.converged,
                            lambda_min=info.lambda_min, lambda_max=info.lambda_max,
@@ -313,6 +322,7 @@ class SchwarzOptimizer:
             "error": new_error,
             "gradient_norm": gnorm,
             "step_norm": float(np.linalg.norm(dx)),
+            "step_max": float(np.abs(dx).max()) if len(dx) else 0.0,
             "lambda": lam,
             "model_fidelity": (self._error - new_error) / -predicted if predicted < 0 else float("nan"),
             "predicted_decrease": -predicted,
@@ -330,6 +340,10 @@ class SchwarzOptimizer:
                         "update": t2 - t1},
         }
         return record, new_values
+
+    def _accept(self, new_values, record):
+        self._values, self._error = new_values, record["error"]
+        self._moved += record["step_max"]
 
     def _log(self, record):
         if self.params.iteration_hook is not None:
@@ -393,7 +407,7 @@ class SchwarzOptimizer:
                                                                        p.relative_error_tol * before)
                 self.stop_reason = "step increased the error: rejected"
                 return False
-            self._values, self._error = new_values, record["error"]
+            self._accept(new_values, record)
             return not self._error_converged(before, record["cg_tolerance"])
         while True:  # Levenberg–Marquardt
             record, new_values = self._try_step(system, gnorm, self._lambda, iteration, seconds)
@@ -404,7 +418,7 @@ class SchwarzOptimizer:
             self.history.append(record)
             self._log(record)
             if ok:
-                self._values, self._error = new_values, record["error"]
+                self._accept(new_values, record)
                 self._lambda = max(self._lambda / p.lambda_factor, p.lambda_lower_bound)
                 return not self._error_converged(before, record["cg_tolerance"])
             if record["cg_tolerance"] <= p.cg_tol and record["predicted_decrease"] <= max(
