@@ -185,8 +185,8 @@ class HarmonicExtension:
         table[pair_sub, local_k] = P.indices
         cols = table[self.sub]
         r, k = np.nonzero(cols >= 0)
-        all_rows = np.r_[gamma_rows, self.interior[r]]
-        all_cols = np.r_[gamma_cols, cols[r, k]]
+        all_rows = np.concatenate([gamma_rows, self.interior[r]])
+        all_cols = np.concatenate([gamma_cols, cols[r, k]])
         order = sp.csr_matrix((np.arange(1, len(all_rows) + 1, dtype=float), (all_rows, all_cols)),
                               shape=(self.n, nc))
         order.sort_indices()
@@ -216,7 +216,7 @@ class HarmonicExtension:
         weights = -A_IG.data[plan["term_a"]] * gamma_vals[plan["term_phi"]]
         Bc = np.bincount(plan["target"], weights=weights, minlength=nI * K).reshape(nI, K)
         X = self._solve_interior(A, Bc)
-        data = np.r_[gamma_vals, X.ravel()[plan["x_entries"]]][plan["perm"]]
+        data = np.concatenate([gamma_vals, X.ravel()[plan["x_entries"]]])[plan["perm"]]
         Phi = sp.csr_matrix((data, plan["indices"], plan["indptr"]), shape=(n, nc))
         # (AΦ)_I = A_II Φ_I + A_IΓ Φ_Γ = 0 for the harmonic extension, so Φᵀ A Φ = Φ_Γᵀ (AΦ)_Γ:
         # only the interface rows of A enter (Φ is dense on subdomain interiors; A Φ would not be)

@@ -195,8 +195,7 @@ class HessianPattern:
         F.sort_indices()
         self.indptr, self.indices, self.shape = F.indptr, F.indices, F.shape
         rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(F.indptr))
-        self._keys = rows * n + F.indices
-        self.diagonal = np.searchsorted(self._keys, np.arange(n, dtype=np.int64) * (n + 1))
+        self.diagonal = np.flatnonzero(rows == F.indices)
 
         self._last = None  # (indptr, indices, positions) of the last pattern placed into this one
 
@@ -209,14 +208,17 @@ class HessianPattern:
         H.sort_indices()
         last = self._last
         if last is None or not (np.array_equal(H.indptr, last[0]) and np.array_equal(H.indices, last[1])):
-            n = self.shape[0]
-            rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(H.indptr))
-            keys = rows * n + H.indices
-            at = np.minimum(np.searchsorted(self._keys, keys), len(self._keys) - 1)
-            if np.any(self._keys[at] != keys):
+            # position of each entry of H in the fixed pattern: the elementwise product of H's
+            # pattern with a matrix holding 1-based positions (scipy keeps canonical order)
+            pos = sp.csr_matrix((np.arange(1, len(self.indices) + 1, dtype=float), self.indices, self.indptr),
+                                shape=self.shape)
+            ones = sp.csr_matrix((np.ones(H.nnz), H.indices, H.indptr), shape=self.shape)
+            hit = sp.csr_matrix(ones.multiply(pos))
+            hit.sort_indices()
+            if hit.nnz != H.nnz or not np.array_equal(hit.indices, H.indices):
                 return None
-            self._last = last = (H.indptr.copy(), H.indices.copy(), at)
-        data = np.zeros(len(self._keys))
+            self._last = last = (H.indptr.copy(), H.indices.copy(), hit.data.astype(np.int64) - 1)
+        data = np.zeros(len(self.indices))
         data[last[2]] = H.data
         return sp.csr_matrix((data, self.indices, self.indptr), shape=self.shape)
 

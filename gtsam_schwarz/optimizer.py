@@ -114,6 +114,7 @@ class SolveResult:
     setup_seconds: float = 0.0
     coarse_size: int = 0
     rebuilt: bool = True  # the preconditioner's numbers were recomputed for this matrix
+    lagged: bool = False  # CG started with the previous preconditioner (lagged)
 
 
 class SchwarzOptimizer:
@@ -247,21 +248,23 @@ class SchwarzOptimizer:
         use = None if p.preconditioner == "none" else M
         x, info = pcg(H, rhs, use, tol=tol, maxiter=cap if cap is not None else p.cg_max_iterations)
         iterations, residuals = info.iterations, list(info.residuals)
-        if cap is not None and not info.converged:
+        lagged = cap is not None
+        if lagged and not info.converged:  # stale: rebuild for H, continue from x
             t2 = time.perf_counter()
             M = use = self.preconditioner(H) if use is not None else None
             setup += time.perf_counter() - t2
             x, info = pcg(H, rhs, use, tol=tol, maxiter=p.cg_max_iterations, x0=x)
             iterations += info.iterations
             residuals += info.residuals[1:]
-        if self._rebuilt:
+            self._moved = 0.0  # the warm-started count is no reference: keep the previous one
+        elif self._rebuilt:
             self._cg_after_build, self._moved = info.iterations, 0.0
         coarse = getattr(M, "coarse_space", None)
         return SolveResult(x=x, iterations=iterations, converged=info.converged,
                            lambda_min=info.lambda_min, lambda_max=info.lambda_max,
                            residuals=residuals, tolerance=tol, setup_seconds=setup,
                            coarse_size=coarse.size if coarse is not None else 0,
-                           rebuilt=self._rebuilt)
+                           rebuilt=self._rebuilt, lagged=lagged)
 
     def _linearize(self) -> tuple[LinearSystem, dict]:
         t0 = time.perf_counter()
@@ -333,6 +336,7 @@ class SchwarzOptimizer:
             "lambda_max": result.lambda_max,
             "coarse_size": result.coarse_size,
             "preconditioner_rebuilt": result.rebuilt,
+            "preconditioner_lagged": result.lagged,
             "cg_residuals": result.residuals,
             "accepted": False,
             "seconds": {"linearize": seconds.get("linearize", 0.0), "export": seconds.get("export", 0.0),
