@@ -184,15 +184,23 @@ class HarmonicExtension:
         table = np.full((P.shape[0], K), -1, dtype=np.int64)
         table[pair_sub, local_k] = P.indices
         cols = table[self.sub]
-        r, k = np.nonzero(cols >= 0)
-        all_rows = np.concatenate([gamma_rows, self.interior[r]])
-        all_cols = np.concatenate([gamma_cols, cols[r, k]])
-        order = sp.csr_matrix((np.arange(1, len(all_rows) + 1, dtype=float), (all_rows, all_cols)),
-                              shape=(self.n, nc))
-        order.sort_indices()
+        r, k = np.nonzero(cols >= 0)  # row-major: already grouped by (sorted) interior row
+        # Φ's CSR layout without a sort: Γ triplets (sorted by row) and interior entries are two
+        # row-sorted lists with disjoint rows, merged by counting how many of the other come first
+        g_order = np.argsort(gamma_rows, kind="stable")
+        g_rows = gamma_rows[g_order]
+        i_rows = self.interior[r]
+        slot = np.empty(len(g_rows) + len(i_rows), dtype=np.int64)
+        slot[:len(g_rows)] = np.arange(len(g_rows)) + np.searchsorted(i_rows, g_rows)
+        slot[len(g_rows):] = np.arange(len(i_rows)) + np.searchsorted(g_rows, i_rows, side="right")
+        indices = np.empty(len(slot), dtype=np.int64)
+        indices[slot[:len(g_rows)]] = gamma_cols[g_order]
+        indices[slot[len(g_rows):]] = cols[r, k]
+        indptr = np.zeros(self.n + 1, dtype=np.int64)
+        np.cumsum(np.bincount(np.concatenate([g_rows, i_rows]), minlength=self.n), out=indptr[1:])
         return {"K": K, "term_a": term_a, "term_phi": term_phi, "target": rows * K + local_k[at],
-                "x_entries": r * K + k, "perm": order.data.astype(np.int64) - 1,
-                "indices": order.indices, "indptr": order.indptr, "gpos": gpos, "nI": nI}
+                "x_entries": r * K + k, "g_order": g_order, "slot": slot,
+                "indices": indices, "indptr": indptr, "gpos": gpos, "nI": nI}
 
     def __call__(self, A: sp.spmatrix, gamma_rows: np.ndarray, gamma_cols: np.ndarray,
                  gamma_vals: np.ndarray, col_subdomains: sp.csr_matrix) -> tuple[sp.csr_matrix, sp.csr_matrix]:
@@ -216,7 +224,8 @@ class HarmonicExtension:
         weights = -A_IG.data[plan["term_a"]] * gamma_vals[plan["term_phi"]]
         Bc = np.bincount(plan["target"], weights=weights, minlength=nI * K).reshape(nI, K)
         X = self._solve_interior(A, Bc)
-        data = np.concatenate([gamma_vals, X.ravel()[plan["x_entries"]]])[plan["perm"]]
+        data = np.empty(len(plan["slot"]))
+        data[plan["slot"]] = np.concatenate([gamma_vals[plan["g_order"]], X.ravel()[plan["x_entries"]]])
         Phi = sp.csr_matrix((data, plan["indices"], plan["indptr"]), shape=(n, nc))
         # (AΦ)_I = A_II Φ_I + A_IΓ Φ_Γ = 0 for the harmonic extension, so Φᵀ A Φ = Φ_Γᵀ (AΦ)_Γ:
         # only the interface rows of A enter (Φ is dense on subdomain interiors; A Φ would not be)

@@ -174,6 +174,20 @@ def export_linear_system(lin: gtsam.GaussianFactorGraph, keymap: KeyMap) -> Line
     return LinearSystem(H=H, g=g, J=J, b=b)
 
 
+def _expand_uniform(blocks: sp.csr_matrix, d: int) -> tuple[np.ndarray, np.ndarray]:
+    """CSR (indptr, indices) of the dof pattern of a vertex pattern whose vertices all have d dofs."""
+    nv = blocks.shape[0]
+    cnt = np.diff(blocks.indptr)
+    expanded = (blocks.indices[:, None].astype(np.int64) * d + np.arange(d)).ravel()  # per vertex row
+    row_len = np.repeat(cnt * d, d)  # each of the d dof rows of vertex v repeats its expanded segment
+    starts = np.repeat(blocks.indptr[:-1].astype(np.int64) * d, d)
+    indptr = np.zeros(nv * d + 1, dtype=np.int64)
+    np.cumsum(row_len, out=indptr[1:])
+    gather = np.repeat(starts - indptr[:-1], row_len) + np.arange(indptr[-1])
+    index_type = np.int32 if nv * d < 2**31 and indptr[-1] < 2**31 else np.int64
+    return indptr.astype(index_type), expanded[gather].astype(index_type)
+
+
 class HessianPattern:
     """The full block sparsity of H: every entry of every block (u, v) of coupled variables.
 
@@ -187,15 +201,23 @@ class HessianPattern:
         offsets = np.asarray(offsets, dtype=np.int64)
         nv, n = len(offsets) - 1, int(offsets[-1])
         owner = np.repeat(np.arange(nv), np.diff(offsets))
-        E = sp.csr_matrix((np.ones(n), (np.arange(n), owner)), shape=(n, nv))
         C = sp.coo_matrix(H)
-        blocks = sp.csr_matrix((np.ones(C.nnz + nv), (np.r_[owner[C.row], np.arange(nv)],
-                                                      np.r_[owner[C.col], np.arange(nv)])), shape=(nv, nv))
-        F = (E @ blocks @ E.T).tocsr()
-        F.sort_indices()
-        self.indptr, self.indices, self.shape = F.indptr, F.indices, F.shape
-        rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(F.indptr))
-        self.diagonal = np.flatnonzero(rows == F.indices)
+        blocks = sp.csr_matrix((np.ones(C.nnz + nv), (np.concatenate([owner[C.row], np.arange(nv)]),
+                                                      np.concatenate([owner[C.col], np.arange(nv)]))),
+                               shape=(nv, nv))
+        blocks.sum_duplicates()
+        blocks.sort_indices()
+        dims = np.diff(offsets)
+        if nv and np.all(dims == dims[0]):  # every variable d dofs: expand the block pattern directly
+            self.indptr, self.indices = _expand_uniform(blocks, int(dims[0]))
+        else:
+            E = sp.csr_matrix((np.ones(n), (np.arange(n), owner)), shape=(n, nv))
+            F = (E @ blocks @ E.T).tocsr()
+            F.sort_indices()
+            self.indptr, self.indices = F.indptr, F.indices
+        self.shape = (n, n)
+        rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(self.indptr))
+        self.diagonal = np.flatnonzero(rows == self.indices)
 
         self._last = None  # (indptr, indices, positions) of the last pattern placed into this one
 

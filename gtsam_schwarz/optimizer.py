@@ -59,7 +59,7 @@ class SchwarzParams:
     forcing: str = "none"  # none | eisenstat-walker
     forcing_max: float = 1e-3  # measured: 0.1 and 0.01 let LM drift to worse minima on M3500a
     lagged_preconditioner: bool = True  # keep M (all its numbers) while the poses have hardly moved
-    lag_distance: float = 1e-2  # lagged: rebuild M once the steps since its build sum to this (max-norm)
+    lag_distance: float = 0.1  # lagged: rebuild M once the steps since its build sum to this (max-norm)
     lag_growth: float = 1.5  # lagged: CG cap = this × the CG count right after the build; beyond it, rebuild
     max_iterations: int = 100
     gradient_tol: float = 1e-8
