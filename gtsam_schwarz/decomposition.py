@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pymetis  # the field's standard graph partitioner
 import scipy.sparse as sp
 
 from .local_solvers import IndexSets
@@ -85,8 +86,6 @@ def metis_partition(structure: GraphStructure, n_subdomains: int, seed: int = 0)
     An edge inside a vertex part goes to that part; a cut edge goes to the part of its later
     vertex, so its earlier vertex becomes an interface pose.
     """
-    import pymetis  # the field's standard graph partitioner; imported only when asked for
-
     nv = structure.n_vertices
     N = int(min(max(int(n_subdomains), 1), max(nv, 1)))
     if N == 1 or len(structure.edges) == 0:
@@ -119,10 +118,7 @@ def auto_partition(structure: GraphStructure, n_subdomains: int) -> np.ndarray:
     interface poses each); on real datasets with loop closures across the whole map they cut
     far more (M3500: 915 coarse functions against 252 with METIS)."""
     seg = segment_partition(structure, n_subdomains)
-    try:
-        met = metis_partition(structure, n_subdomains)
-    except ImportError:  # pymetis missing: segments
-        return seg
+    met = metis_partition(structure, n_subdomains)
     return seg if interface_count(structure, seg) <= interface_count(structure, met) else met
 
 
