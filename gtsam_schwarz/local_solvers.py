@@ -8,6 +8,7 @@ loop over subdomains. Blocks never couple, so each could equally be factorized o
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -71,9 +72,12 @@ DENSE_FACTOR_MAX = 4000  # a matrix this small and at least 10 % full is factori
 try:  # CHOLMOD (SuiteSparse) through scikit-sparse: supernodal, reusable symbolic analysis
     from sksparse.cholmod import CholmodError as _CholmodError
     from sksparse.cholmod import analyze as _cholmod_analyze
-    SPARSE_BACKEND = "cholmod"
+    _HAVE_CHOLMOD = True
 except ImportError:  # SuperLU (scipy) with a symmetric ordering
-    SPARSE_BACKEND = "superlu"
+    _HAVE_CHOLMOD = False
+# GTSAM_SCHWARZ_SPARSE=superlu forces the fallback (to measure one against the other)
+SPARSE_BACKEND = ("cholmod" if _HAVE_CHOLMOD and os.environ.get("GTSAM_SCHWARZ_SPARSE", "") != "superlu"
+                  else "superlu")
 
 
 def _check_finite(K: sp.spmatrix, what: str) -> None:

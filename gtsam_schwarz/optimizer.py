@@ -58,6 +58,8 @@ class SchwarzParams:
     cg_max_iterations: int | None = None  # None: 10 × the system dimension
     forcing: str = "none"  # none | eisenstat-walker
     forcing_max: float = 1e-3  # measured: 0.1 and 0.01 let LM drift to worse minima on M3500a
+    reuse_symbolic: bool = True  # keep interface, patterns and symbolic factorizations across solves
+    blas_threads: int | None = 1  # BLAS threads while iterating (None: leave the process setting)
     lagged_preconditioner: bool = True  # keep M (all its numbers) while the poses have hardly moved
     lag_distance: float = 0.1  # lagged: rebuild M once the steps since its build sum to this (max-norm)
     lag_growth: float = 1.5  # lagged: CG cap = this × the CG count right after the build; beyond it, rebuild
@@ -220,7 +222,7 @@ class SchwarzOptimizer:
         rigid = p.preconditioner in _TWO_LEVEL and p.coarse_modes == "rigid"
         geometry = (lambda: self.keymap.geometry(self._values) if rigid else None)
         self._rebuilt = not (lag and M is not None)
-        if M is None:
+        if M is None or (not lag and not p.reuse_symbolic):
             M = make_preconditioner(p.preconditioner, H, self._decompose(H), self._translation_mask,
                                     geometry(), p.interface_grouping)
             self._preconditioner = M
@@ -390,7 +392,9 @@ class SchwarzOptimizer:
         BLAS runs single-threaded meanwhile: our dense operations are small, and idle OpenBLAS
         threads spinning beside CHOLMOD's OpenMP threads slowed setup and CG by up to 20× (measured).
         """
-        with threadpool_limits(limits=1, user_api="blas"):
+        if self.params.blas_threads is None:
+            return self._iterate()
+        with threadpool_limits(limits=self.params.blas_threads, user_api="blas"):
             return self._iterate()
 
     def _iterate(self) -> bool:

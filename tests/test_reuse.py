@@ -143,3 +143,16 @@ def test_lagged_preconditioner_is_rebuilt_when_the_poses_move_and_reused_for_rej
     off.optimize()
     assert all(r["preconditioner_rebuilt"] for r in off.history)
     assert abs(opt.error() - off.error()) <= 1e-6 * off.error()
+
+
+def test_symbolic_reuse_gives_the_same_iterates_as_rebuilding_from_scratch():
+    prob = square_loops(8, 8, sigma=0.05, seed=2)
+    runs = []
+    for reuse in (True, False):
+        opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(
+            method="lm", subdomains=4, reuse_symbolic=reuse, lagged_preconditioner=False))
+        opt.optimize()
+        runs.append(opt)
+    a, b = runs
+    assert [h["cg_iterations"] for h in a.history] == [h["cg_iterations"] for h in b.history]
+    assert abs(a.error() - b.error()) <= 1e-9 * b.error()

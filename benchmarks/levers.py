@@ -1,0 +1,84 @@
+"""Each speed lever of issue 8 measured alone: the default solver against the solver with one lever off.
+
+    python benchmarks/levers.py                          # sq128x64 and city10000
+    python benchmarks/levers.py --cases sq1024x64 --json
+
+Every variant runs in its own child process (``python -m gtsam_schwarz.bench``, the benchmark's
+worker), so allocator state and imports do not carry over; the time is the optimizer's construction
+plus ``optimize()``, problem loading excluded, as in ``gtsam-schwarz bench``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+import tempfile
+
+from gtsam_schwarz.bench import ALL_CASES, _child_env, default_datasets_dir, run_child
+
+# (name, SchwarzParams overrides, environment overrides)
+VARIANTS = (
+    ("default (every lever on)", {}, {}),
+    ("SuperLU instead of CHOLMOD", {}, {"GTSAM_SCHWARZ_SPARSE": "superlu"}),
+    ("no symbolic reuse (rebuild M from scratch)", {"reuse_symbolic": False}, {}),
+    ("no lagged preconditioner", {"lagged_preconditioner": False}, {}),
+    ("BLAS threads not limited", {"blas_threads": None}, {}),
+    ("glibc allocator defaults", {}, {"GTSAM_SCHWARZ_MALLOPT": "0"}),
+    ("inexact Newton (Eisenstat-Walker) on", {"forcing": "eisenstat-walker"}, {}),
+    ("partition: segments", {"partition": "segments"}, {}),
+    ("partition: metis", {"partition": "metis"}, {}),
+)
+
+
+def run_variant(case: str, overrides: dict, env: dict, datasets: pathlib.Path, timeout: float) -> dict:
+    with tempfile.TemporaryDirectory(prefix="gtsam-schwarz-levers-") as tmp:
+        out = pathlib.Path(tmp) / "result.json"
+        argv = [sys.executable, "-m", "gtsam_schwarz.bench", "--case", case, "--solver", "ours",
+                "--params", json.dumps(overrides), "--datasets", str(datasets), "--result", str(out)]
+        child = run_child(argv, timeout, env={**_child_env(), **env})
+        row = json.loads(out.read_text()) if child["status"] == "ok" and out.exists() else {}
+    return {"status": child["status"], **row}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", default="sq128x64,city10000", help="comma list of bench case names")
+    ap.add_argument("--timeout", type=float, default=1200.0)
+    ap.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
+    args = ap.parse_args(argv)
+    cases = [c for c in args.cases.split(",") if c]
+    unknown = [c for c in cases if c not in ALL_CASES]
+    if unknown:
+        ap.error(f"unknown case {unknown[0]!r}; choose from {', '.join(sorted(ALL_CASES))}")
+    datasets = default_datasets_dir()
+    rows = []
+    for case in cases:
+        for name, overrides, env in VARIANTS:
+            if sys.stderr.isatty():
+                print(f"{case}: {name} …", file=sys.stderr, flush=True)
+            rows.append({"case": case, "variant": name, "params": overrides, "env": env,
+                         **run_variant(case, overrides, env, datasets, args.timeout)})
+    if args.json:
+        print(json.dumps(rows, default=str))
+        return 0
+    print("| case | variant | status | seconds | vs default | iterations | solves | CG / solve | setup s | CG s | final error |")
+    print("|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for case in cases:
+        group = [r for r in rows if r["case"] == case]
+        base = group[0].get("seconds")
+        for r in group:
+            s = r.get("seconds")
+            split = r.get("split", {})
+            ratio = f"{s / base:.2f}" if s and base else "–"
+            print(f"| {case} | {r['variant']} | {r['status']} | {s:.3f} | {ratio} | {r.get('iterations', '–')} | "
+                  f"{r.get('linear_solves', '–')} | {r.get('cg_mean', float('nan')):.1f} | "
+                  f"{split.get('setup', float('nan')):.3f} | {split.get('cg', float('nan')):.3f} | "
+                  f"{r.get('final_error', float('nan')):.10g} |" if s is not None else
+                  f"| {case} | {r['variant']} | {r['status']} | – | – | – | – | – | – | – | – |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
