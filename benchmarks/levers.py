@@ -14,11 +14,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import pathlib
 import sys
-import tempfile
 
-from gtsam_schwarz.bench import ALL_CASES, _child_env, default_datasets_dir, run_child
+from gtsam_schwarz.bench import ALL_CASES, default_datasets_dir, run_solver
 
 # (name, SchwarzParams overrides, environment overrides)
 VARIANTS = (
@@ -34,27 +32,19 @@ VARIANTS = (
 )
 
 
-def run_variant(case: str, overrides: dict, env: dict, datasets: pathlib.Path, timeout: float) -> dict:
-    with tempfile.TemporaryDirectory(prefix="gtsam-schwarz-levers-") as tmp:
-        out = pathlib.Path(tmp) / "result.json"
-        argv = [sys.executable, "-m", "gtsam_schwarz.bench", "--case", case, "--solver", "ours",
-                "--params", json.dumps(overrides), "--datasets", str(datasets), "--result", str(out)]
-        child = run_child(argv, timeout, env={**_child_env(), **env})
-        row = json.loads(out.read_text()) if child["status"] == "ok" and out.exists() else {}
-    return {"status": child["status"], **row}
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", default="sq128x64,city10000", help="comma list of bench case names")
     ap.add_argument("--timeout", type=float, default=1200.0)
     ap.add_argument("--repeat", type=int, default=3, help="runs per variant; the median is shown")
-    ap.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
+    ap.add_argument("--json", action="store_true", help="print the rows as one JSON list instead of the table")
     args = ap.parse_args(argv)
     cases = [c for c in args.cases.split(",") if c]
     unknown = [c for c in cases if c not in ALL_CASES]
     if unknown:
         ap.error(f"unknown case {unknown[0]!r}; choose from {', '.join(sorted(ALL_CASES))}")
+    if args.repeat < 1 or not args.timeout > 0:
+        ap.error("--repeat must be at least 1 and --timeout positive")
     datasets = default_datasets_dir()
     runs = {(case, name): [] for case in cases for name, _, _ in VARIANTS}
     for rep in range(args.repeat):
@@ -62,7 +52,7 @@ def main(argv=None) -> int:
             for name, overrides, env in VARIANTS:
                 if sys.stderr.isatty():
                     print(f"[run {rep + 1}/{args.repeat}] {case}: {name} …", file=sys.stderr, flush=True)
-                runs[case, name].append(run_variant(case, overrides, env, datasets, args.timeout))
+                runs[case, name].append(run_solver(ALL_CASES[case], "ours", overrides, datasets, args.timeout, env))
     rows = []
     for case in cases:
         for name, overrides, env in VARIANTS:

@@ -26,6 +26,8 @@ import tempfile
 import time
 from dataclasses import dataclass
 
+from .report import markdown_table
+
 SOLVERS = ("ours", "gtsam-lm", "gtsam-lm-pcg", "gtsam-lm-subgraph")
 SPEEDUP_OVER_OURS = ("gtsam-lm-pcg", "gtsam-lm-subgraph")  # rows that show "GTSAM solver / ours"
 SIZES = ("tiny", "small", "large")
@@ -224,13 +226,15 @@ def _child_env() -> dict:
     return {**os.environ, "PYTHONPATH": root + (os.pathsep + path if path else "")}
 
 
-def run_solver(case: Case, solver: str, overrides: dict, datasets: pathlib.Path, timeout: float) -> dict:
-    """One benchmark run in a child; a crash or a timeout is a row with that status."""
+def run_solver(case: Case, solver: str, overrides: dict, datasets: pathlib.Path, timeout: float,
+               env: dict | None = None) -> dict:
+    """One benchmark run in a child (``env``: extra environment variables); a crash or a timeout is
+    a row with that status."""
     with tempfile.TemporaryDirectory(prefix="gtsam-schwarz-bench-") as tmp:
         result = pathlib.Path(tmp) / "result.json"
         argv = [sys.executable, "-m", "gtsam_schwarz.bench", "--case", case.name, "--solver", solver,
                 "--params", json.dumps(overrides), "--datasets", str(datasets), "--result", str(result)]
-        child = run_child(argv, timeout, unlimited_stack=solver != "ours", env=_child_env())
+        child = run_child(argv, timeout, unlimited_stack=solver != "ours", env={**_child_env(), **(env or {})})
         row = json.loads(result.read_text()) if child["status"] == "ok" and result.exists() else {}
     if child["status"] == "ok" and not row:
         child["status"] = "error: the child wrote no result"
@@ -280,8 +284,7 @@ def _f(v, fmt: str, missing: str = "–") -> str:
 
 
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
-    align = ["---" if h in ("case", "solver", "status", "stack") else "---:" for h in header]
-    return ["| " + " | ".join(header) + " |", "|" + "|".join(align) + "|"] + ["| " + " | ".join(r) + " |" for r in rows]
+    return markdown_table(header, rows, left=("case", "solver", "status", "stack"))
 
 
 def _same(r: dict) -> str:

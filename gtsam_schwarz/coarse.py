@@ -142,15 +142,13 @@ class HarmonicExtension:
         self._A_IG = Gather(lambda M: M[I][:, G])
         self._A_G = Gather(lambda M: M[G])
         self._factor = None
-        self._factor_pattern = None
+        self._cached = None  # (signature of the interface values, plan)
 
     def _solve_interior(self, A, B):
         pattern = self._A_II.pattern
         A_II = self._A_II(A)
-        if self._factor is None or self._A_II.pattern is not pattern:
-            self._factor = factorize(A_II, "the interior matrix A_II")
-        elif isinstance(self._factor, SparseCholesky):
-            self._factor.refactor(A_II)
+        if isinstance(self._factor, SparseCholesky) and self._A_II.pattern is pattern:
+            self._factor.refactor(A_II)  # same pattern: numbers only
         else:
             self._factor = factorize(A_II, "the interior matrix A_II")
         return self._factor(B)
@@ -214,7 +212,7 @@ class HarmonicExtension:
         A_IG = self._A_IG(A)
         col_subdomains = sp.csr_matrix(col_subdomains)
         signature = (gamma_rows, gamma_cols, col_subdomains.indptr, col_subdomains.indices)
-        cached = getattr(self, "_cached", None)
+        cached = self._cached
         if (cached is None or self._A_IG.pattern is not pattern
                 or not all(np.array_equal(a, b) for a, b in zip(cached[0], signature))):
             self._cached = cached = (tuple(np.array(a, copy=True) for a in signature),

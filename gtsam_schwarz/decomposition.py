@@ -106,8 +106,8 @@ def interface_count(structure: GraphStructure, edge_subdomain: np.ndarray) -> in
     e = structure.edges
     v = np.r_[e[:, 0], e[:, 1]]
     part = np.r_[edge_subdomain, edge_subdomain]
-    pairs = np.unique(v * np.int64(max(int(part.max(initial=0)) + 1, 1)) + part)
-    verts = pairs // max(int(part.max(initial=0)) + 1, 1)
+    n_parts = int(part.max(initial=0)) + 1
+    verts = np.unique(v * np.int64(n_parts) + part) // n_parts  # one entry per (vertex, subdomain)
     return int(np.count_nonzero(np.bincount(verts, minlength=structure.n_vertices) >= 2))
 
 

@@ -18,7 +18,7 @@ from .decomposition import PARTITIONS, GraphStructure, decompose, default_subdom
 from .krylov import pcg
 from .linear_system import HessianPattern, KeyMap, LinearSystem, export_linear_system
 from .local_solvers import SparseCholesky, SparsityPattern
-from .preconditioners import PRECONDITIONERS, TwoLevelSchwarz, make_preconditioner
+from .preconditioners import PRECONDITIONERS, make_preconditioner
 from .runtime import tune_allocator
 
 LINEAR_SOLVERS = PRECONDITIONERS + ("direct",)
@@ -150,6 +150,7 @@ class SchwarzOptimizer:
         self._pattern = None  # HessianPattern of the graph
         self._cg_after_build = None  # CG iterations of the first solve after the last numeric build
         self._moved = float("inf")  # max-norm of the accepted steps since the preconditioner's build
+        self._rebuilt = True  # the last solve recomputed the preconditioner's numbers
 
     # -- GTSAM-like accessors ------------------------------------------------------------
     def values(self) -> gtsam.Values:
@@ -227,10 +228,7 @@ class SchwarzOptimizer:
                                     geometry(), p.interface_grouping)
             self._preconditioner = M
         elif not lag:
-            if isinstance(M, TwoLevelSchwarz):
-                M.update(H, geometry())
-            else:
-                M.update(H)
+            M.update(H, geometry())
         return M
 
     def solve_linear(self, H, rhs, tol: float | None = None) -> SolveResult:

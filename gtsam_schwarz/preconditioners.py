@@ -33,10 +33,10 @@ class Preconditioner:
     def __add__(self, other: "Preconditioner") -> "Preconditioner":
         return SumOperator([self, other])
 
-    def update(self, A) -> "Preconditioner":
-        """Rebuild for a matrix with new numbers (subclasses reuse their symbolic work)."""
-        self.__init__(A)
-        return self
+    def update(self, A, geometry: VertexGeometry | None = None) -> "Preconditioner":
+        """New numbers in A (same pattern), and new poses for a rigid coarse space; symbolic work
+        is kept."""
+        raise NotImplementedError
 
     def aspreconditioner(self) -> LinearOperator:
         return LinearOperator((self.n, self.n), matvec=self.matvec, rmatvec=self.matvec, dtype=float)
@@ -53,6 +53,11 @@ class SumOperator(Preconditioner):
         self.parts = list(parts)
         self.n = self.parts[0].n
 
+    def update(self, A, geometry=None):
+        for p in self.parts:
+            p.update(A, geometry)
+        return self
+
     def matvec(self, x):
         y = self.parts[0].matvec(x)
         for p in self.parts[1:]:
@@ -64,6 +69,9 @@ class Identity(Preconditioner):
     def __init__(self, A):
         self.n = A.shape[0]
 
+    def update(self, A, geometry=None):
+        return self
+
     def matvec(self, x):
         return np.array(x, dtype=float, copy=True)
 
@@ -72,11 +80,15 @@ class Jacobi(Preconditioner):
     """Point Jacobi: diag(A)⁻¹."""
 
     def __init__(self, A):
+        self.n = A.shape[0]
+        self.update(A)
+
+    def update(self, A, geometry=None):
         d = np.asarray(sp.csr_matrix(A).diagonal(), dtype=float)
         if np.any(d <= 0) or not np.all(np.isfinite(d)):
             raise SingularLocalMatrixError("Jacobi: the matrix has a non-positive diagonal entry")
-        self.n = len(d)
         self.inv_diag = 1.0 / d
+        return self
 
     def matvec(self, x):
         return self.inv_diag * x
@@ -90,7 +102,7 @@ class AdditiveSchwarz(Preconditioner):
         self.sets = sets
         self.solver = BlockDiagonalSolver(A, sets)
 
-    def update(self, A):
+    def update(self, A, geometry=None):
         """Same subdomains, new numbers: numeric refactorization only."""
         self.solver.update(A)
         return self
@@ -120,14 +132,11 @@ class CoarseCorrection(Preconditioner):
         self.coarse = coarse
         self.n = coarse.Phi.shape[0]
         self.PhiT = coarse.Phi.T.tocsr()
-        self._factorize(coarse.A0)
-
-    def _factorize(self, A0):
         self.dropped = 0
         try:
-            self._solve = factorize(A0, "the coarse matrix A_0")
+            self._solve = factorize(coarse.A0, "the coarse matrix A_0")
         except SingularLocalMatrixError:
-            self._solve = self._range_solver(A0)
+            self._solve = self._range_solver(coarse.A0)
 
     def _range_solver(self, A0):
         nc = A0.shape[0]

@@ -19,10 +19,14 @@ def _num(v, digits=1) -> str:
     return "–" if v is None else (f"{v:.{digits}f}" if isinstance(v, float) else str(v))
 
 
+def markdown_table(header: list[str], rows: list[list[str]], left: tuple[str, ...] = ()) -> list[str]:
+    """Lines of a Markdown table; columns are right-aligned except those named in ``left``."""
+    align = ["---" if h in left else "---:" for h in header]
+    return ["| " + " | ".join(header) + " |", "|" + "|".join(align) + "|"] + ["| " + " | ".join(r) + " |" for r in rows]
+
+
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
-    out = ["| " + " | ".join(header) + " |", "|" + "|".join("---:" for _ in header) + "|"]
-    out += ["| " + " | ".join(r) + " |" for r in rows]
-    return out + [""]
+    return markdown_table(header, rows) + [""]
 
 
 def _cell(r: dict | None, qty: str) -> tuple[str, str]:
