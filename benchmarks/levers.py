@@ -3,7 +3,7 @@
     python benchmarks/levers.py                          # sq128x64 and city10000, 3 runs each
     python benchmarks/levers.py --cases sq1024x64 --repeat 1 --json
 
-Every variant runs in its own child process (``python -m gtsam_schwarz.bench``, the benchmark's
+Every variant runs in its own child process (``python -m gtsam_schwarz.apps.bench``, the benchmark's
 worker), so allocator state and imports do not carry over; the time is the optimizer's construction
 plus ``optimize()``, problem loading excluded, as in ``gtsam-schwarz bench``. Each variant runs
 ``--repeat`` times, interleaved (all variants once, then again), and the table shows the median
@@ -16,7 +16,7 @@ import argparse
 import json
 import sys
 
-from gtsam_schwarz.bench import ALL_CASES, default_datasets_dir, run_solver
+from gtsam_schwarz.apps.bench import ALL_CASES, default_datasets_dir, run_solver
 
 # (name, SchwarzParams overrides, environment overrides)
 VARIANTS = (

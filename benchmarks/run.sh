@@ -6,7 +6,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-bench=(python -m gtsam_schwarz.cli bench)  # = gtsam-schwarz bench, from this checkout
+bench=(python -m gtsam_schwarz.apps.cli bench)  # = gtsam-schwarz bench, from this checkout
 
 mkdir -p docs
 tmp=$(mktemp -d docs/.benchmarks.XXXXXX)  # beside the target, so the final mv is atomic

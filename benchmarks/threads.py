@@ -16,9 +16,9 @@ import time
 
 from threadpoolctl import threadpool_limits
 
-from gtsam_schwarz.decomposition import GraphStructure, decompose, default_subdomains
-from gtsam_schwarz.linear_system import KeyMap, export_linear_system
-from gtsam_schwarz.local_solvers import SPARSE_BACKEND, SparseCholesky, block_diagonal
+from gtsam_schwarz.dd import GraphStructure, decompose, default_subdomains
+from gtsam_schwarz.linearization.gtsam_export import KeyMap, export_linear_system
+from gtsam_schwarz.solvers import SPARSE_BACKEND, SparseCholesky, block_diagonal
 from gtsam_schwarz.problems import square_loops
 
 

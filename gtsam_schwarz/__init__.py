@@ -1,24 +1,48 @@
-"""gtsam-schwarz: pose-graph Gauss–Newton for GTSAM with two-level overlapping Schwarz (GDSW) PCG."""
+"""gtsam-schwarz: pose-graph Gauss–Newton / Levenberg–Marquardt for GTSAM with two-level
+overlapping Schwarz (GDSW) preconditioned CG.
 
-from .bars import BarChain, bar_chain
-from .coarse import CoarseSpace, gdsw_coarse_space
-from .decomposition import Decomposition, GraphStructure, segment_partition, segments
-from .interface import Interface, find_interface
-from .io import GraphFileError, LoadedGraph, load_graph, write_g2o
-from .krylov import CGInfo, pcg
-from .linear_system import KeyMap, LinearSystem, export_linear_system
-from .local_solvers import BlockDiagonalSolver, IndexSets, SingularLocalMatrixError
-from .optimizer import LINEAR_SOLVERS, SchwarzOptimizer, SchwarzParams
-from .preconditioners import (PRECONDITIONERS, AdditiveSchwarz, BlockJacobi, CoarseCorrection,
-                              Identity, Jacobi, TwoLevelSchwarz, make_preconditioner)
-from .problems import HelixLoops, SquareLoops, helix_loops, square_loops, square_trajectory
+Layers (each imports only from those below; see docs/architecture.md):
+``io``, ``problems`` → ``dd``, ``solvers``, ``krylov`` → ``coarse``, ``linearization`` →
+``schwarz`` → ``nonlinear`` → ``apps``. The top-level names load lazily, so the Schwarz core
+(``gtsam_schwarz.dd``, ``coarse``, ``schwarz``, ``solvers``, ``krylov``) imports without gtsam.
+"""
 
-__all__ = [
-    "AdditiveSchwarz", "BarChain", "BlockDiagonalSolver", "BlockJacobi", "CGInfo", "CoarseCorrection",
-    "CoarseSpace", "Decomposition", "GraphStructure", "Identity", "IndexSets", "Interface",
-    "HelixLoops", "GraphFileError", "Jacobi", "KeyMap", "LoadedGraph", "LINEAR_SOLVERS", "LinearSystem", "PRECONDITIONERS", "SchwarzOptimizer",
-    "SchwarzParams", "SingularLocalMatrixError", "SquareLoops", "TwoLevelSchwarz",
-    "bar_chain", "export_linear_system", "find_interface", "gdsw_coarse_space", "make_preconditioner", "pcg",
-    "helix_loops", "load_graph", "write_g2o", "segment_partition", "segments", "square_loops", "square_trajectory",
-]
+from importlib import import_module
+
+from . import _compat
+
 __version__ = "0.1.0"
+
+_EXPORTS = {
+    "dd": ["Decomposition", "GraphStructure", "IndexSets", "Interface", "VertexGeometry", "find_interface",
+           "segment_partition", "segments"],
+    "coarse": ["CoarseSpace", "gdsw_coarse_space"],
+    "solvers": ["BlockDiagonalSolver", "SingularLocalMatrixError"],
+    "krylov": ["CGInfo", "pcg"],
+    "schwarz": ["PRECONDITIONERS", "AdditiveSchwarz", "BlockJacobi", "CoarseCorrection", "Identity", "Jacobi",
+                "TwoLevelSchwarz", "make_preconditioner", "register_preconditioner"],
+    "linearization": ["KeyMap", "LinearSystem", "export_linear_system", "GtsamLinearizer", "NativeLinearizer"],
+    "nonlinear": ["LINEAR_SOLVERS", "SchwarzOptimizer", "SchwarzParams", "GaussNewtonParams",
+                  "LevenbergMarquardtParams", "LinearSolverParams", "IterationRecord"],
+    "io": ["GraphFileError", "LoadedGraph", "load_graph", "write_g2o"],
+    "problems": ["BarChain", "HelixLoops", "SquareLoops", "bar_chain", "helix_loops", "square_loops",
+                 "square_trajectory"],
+}
+_WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
+
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name):
+    if name in _WHERE:
+        value = getattr(import_module(f".{_WHERE[name]}", __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))
+
+
+_compat.install(__name__)

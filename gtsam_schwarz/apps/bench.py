@@ -1,0 +1,540 @@
+"""``gtsam-schwarz bench``: end-to-end solves of ours against GTSAM's optimizers, one child process per run.
+
+Each solver run is a child (``python -m gtsam_schwarz.apps.bench --case ... --solver ...``) so that it has
+its own peak memory and a crash or a timeout becomes a row of the table, not the end of the benchmark.
+GTSAM's children run under ``ulimit -s unlimited`` (its recursive elimination needs a deep stack);
+ours runs with the default stack. Every child records the stack limit it ran under.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import importlib.metadata
+import json
+import math
+import os
+import pathlib
+import platform
+import resource
+import shlex
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+
+from .report import markdown_table
+
+SOLVERS = ("ours", "gtsam-lm", "gtsam-lm-pcg", "gtsam-lm-subgraph")
+SPEEDUP_OVER_OURS = ("gtsam-lm-pcg", "gtsam-lm-subgraph")  # rows that show "GTSAM solver / ours"
+SIZES = ("tiny", "small", "large")
+PHASES = ("linearize", "export", "setup", "cg", "update")
+BASE_PARAMS = {"method": "lm", "preconditioner": "gdsw"}
+TOLERANCE = 1e-6  # relative final-error difference to GTSAM LM that counts as "the same answer"
+STDERR_TAIL = 4000  # characters of a child's stderr kept
+
+
+@dataclass(frozen=True)
+class Case:
+    """One benchmark problem: the paper's model problem (loops × points per side) or a dataset file."""
+
+    name: str
+    loops: int = 0
+    points_per_side: int = 0
+    file: str = ""
+
+    @property
+    def description(self) -> str:
+        if self.file:
+            return f"../shared/datasets/{self.file}"
+        return f"model problem, {self.loops} loops x {self.points_per_side} points per side (sigma 0.01, seed 0)"
+
+    @property
+    def model_poses(self) -> int | None:
+        return 4 * self.loops * self.points_per_side + 1 if not self.file else None
+
+
+def _model(loops: int, points_per_side: int) -> Case:
+    return Case(f"sq{loops}x{points_per_side}", loops=loops, points_per_side=points_per_side)
+
+
+CASES = {
+    "tiny": (_model(8, 16), Case("smallGrid3D", file="smallGrid3D.g2o")),
+    "small": (_model(32, 128), _model(128, 64), Case("M3500", file="input_M3500_g2o.g2o"),
+              Case("city10000", file="city10000.g2o"), Case("sphere2500", file="sphere2500.g2o")),
+    "large": (_model(1024, 64), _model(1024, 256)),
+}
+ALL_CASES = {c.name: c for size in SIZES for c in CASES[size]}
+
+
+CHECKOUT = pathlib.Path(__file__).resolve().parents[2]  # the folder that holds the gtsam_schwarz package
+
+
+def default_datasets_dir() -> pathlib.Path:
+    """``../shared/datasets`` from the current folder, else beside this checkout."""
+    here = pathlib.Path.cwd().parent / "shared" / "datasets"
+    return here if here.is_dir() else CHECKOUT.parent / "shared" / "datasets"
+
+
+# -- the child -----------------------------------------------------------------------------------
+def _memory_mib() -> tuple[float, float]:
+    """(current, peak) resident set size in MiB: VmRSS and VmHWM from one read of /proc/self/status,
+    so peak >= current always holds (``ru_maxrss`` lags by the kernel's per-thread RSS caches);
+    ``ru_maxrss`` for both where /proc is missing."""
+    try:
+        with open("/proc/self/status") as f:
+            fields = dict(l.split(":", 1) for l in f if l.startswith(("VmRSS:", "VmHWM:")))
+        rss, hwm = (int(fields[k].split()[0]) / 1024 for k in ("VmRSS", "VmHWM"))
+        return rss, max(rss, hwm)
+    except (OSError, KeyError, ValueError):
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
+        return peak, peak
+
+
+def _reset_peak() -> bool:
+    """Reset this process's peak RSS (Linux ``clear_refs`` 5), so the solve's own peak can be read."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def stack_limit() -> dict:
+    """The soft stack limit of this process: bytes (None = unlimited) and as text."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_STACK)
+    if soft == resource.RLIM_INFINITY:
+        return {"bytes": None, "text": "unlimited"}
+    return {"bytes": soft, "text": f"{soft / 2**20:g} MiB"}
+
+
+def load_case(case: Case, datasets: pathlib.Path):
+    """(graph, initial, poses, dimension) of a case."""
+    if case.file:
+        from ..io import load_graph
+        g = load_graph(datasets / case.file)
+        return g.graph, g.initial, g.poses, g.dimension
+    from ..problems import square_loops
+    p = square_loops(case.loops, case.points_per_side)
+    return p.graph, p.initial, p.poses, 2
+
+
+def _solve_ours(graph, initial, overrides: dict) -> dict:
+    from .compare import run_ours
+    from ..nonlinear import SchwarzParams
+
+    r = run_ours(graph, initial, SchwarzParams(**{**BASE_PARAMS, **overrides}))
+    its = r["iterations"]
+    per = {k: (v / its if its else float("nan")) for k, v in r["split"].items()}
+    keep = ("iterations", "seconds", "linear_solves", "cg_mean", "subdomains", "coarse_size", "converged",
+            "stop_reason")
+    return {**{k: r[k] for k in keep}, "values": r["values"], "split": r["split"], "split_per_iteration": per}
+
+
+def _solve_gtsam(graph, initial, name: str) -> dict:
+    from .compare import ITERATIVE_TOL, run_gtsam
+
+    r = run_gtsam(graph, initial, name, iterative_tol=ITERATIVE_TOL)
+    return {k: r[k] for k in ("iterations", "seconds", "values", "failed") if k in r}
+
+
+def solve(case: Case, solver: str, overrides: dict, datasets: pathlib.Path) -> dict:
+    """Load (not timed), then time the optimizer's construction + optimize(); memory and stack figures.
+
+    ``peak_mib`` is the whole child's peak RSS; ``solve_peak_mib`` the peak since loading ended
+    (the same figure where the peak cannot be reset)."""
+    graph, initial, poses, dimension = load_case(case, datasets)
+    loaded, load_peak = _memory_mib()
+    reset = _reset_peak()
+    r = _solve_ours(graph, initial, overrides) if solver == "ours" else _solve_gtsam(graph, initial, solver)
+    solve_peak = _memory_mib()[1]
+    values = r.pop("values")
+    r["final_error"] = float(graph.error(values)) if values is not None else float("nan")
+    return {**r, "poses": poses, "dimension": dimension, "loaded_mib": loaded,
+            "peak_mib": max(load_peak, solve_peak), "solve_peak_mib": solve_peak, "peak_reset": reset,
+            "stack": stack_limit()}
+
+
+def worker_main(argv=None) -> int:
+    """Child entry point: solve one (case, solver) and write the result as JSON to ``--result``."""
+    from .runtime import tune_allocator
+    tune_allocator()
+    ap = argparse.ArgumentParser(prog="python -m gtsam_schwarz.apps.bench", description="one benchmark run (a child)")
+    ap.add_argument("--case", required=True, choices=sorted(ALL_CASES))
+    ap.add_argument("--solver", required=True, choices=SOLVERS)
+    ap.add_argument("--params", default="{}", help="JSON object of SchwarzParams overrides (ours)")
+    ap.add_argument("--datasets", type=pathlib.Path, default=None)
+    ap.add_argument("--result", required=True, help="file to write the JSON result to")
+    args = ap.parse_args(argv)
+    from .jsonout import json_safe
+
+    row = solve(ALL_CASES[args.case], args.solver, json.loads(args.params), args.datasets or default_datasets_dir())
+    pathlib.Path(args.result).write_text(json.dumps(json_safe(row), allow_nan=False))
+    return 0
+
+
+# -- the parent: one child per run ---------------------------------------------------------------
+def _last_line(text: str) -> str:
+    lines = [l.strip() for l in text.splitlines() if l.strip()]
+    return lines[-1] if lines else ""
+
+
+def _status(rc: int, stderr: str) -> str:
+    if rc == 0:
+        return "ok"
+    if rc < 0:
+        try:
+            return f"crashed ({signal.Signals(-rc).name})"
+        except ValueError:
+            return f"crashed (signal {-rc})"
+    return f"error (exit {rc}): {_last_line(stderr) or 'no message'}"
+
+
+def run_child(argv: list[str], timeout: float, unlimited_stack: bool = False, env: dict | None = None) -> dict:
+    """Run ``argv`` in its own process group; status ok / crashed (SIGxxx) / timeout after N s / error."""
+    if unlimited_stack:  # raise the soft limit as far as allowed, then exec: the child keeps bash's pid
+        argv = ["bash", "-c", 'ulimit -s unlimited 2>/dev/null || ulimit -s "$(ulimit -H -s)"; exec "$@"',
+                "bash", *argv]
+    t = time.perf_counter()
+    proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, errors="replace", start_new_session=True, env=env)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+        status = _status(proc.returncode, err)
+    except subprocess.TimeoutExpired:
+        _kill_group(proc)
+        out, err = proc.communicate()
+        status = f"timeout after {timeout:g} s"
+    except BaseException:  # e.g. Ctrl-C: the child is in its own session and would not get it
+        _kill_group(proc)
+        proc.wait()
+        raise
+    return {"status": status, "returncode": proc.returncode, "stdout": out, "stderr": err[-STDERR_TAIL:],
+            "child_seconds": time.perf_counter() - t}
+
+
+def _kill_group(proc: subprocess.Popen) -> None:
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+
+
+def _child_env() -> dict:
+    """This environment with this package's folder first on PYTHONPATH: the child runs the same code."""
+    root = str(CHECKOUT)
+    path = os.environ.get("PYTHONPATH")
+    return {**os.environ, "PYTHONPATH": root + (os.pathsep + path if path else "")}
+
+
+def run_solver(case: Case, solver: str, overrides: dict, datasets: pathlib.Path, timeout: float,
+               env: dict | None = None) -> dict:
+    """One benchmark run in a child (``env``: extra environment variables); a crash or a timeout is
+    a row with that status."""
+    with tempfile.TemporaryDirectory(prefix="gtsam-schwarz-bench-") as tmp:
+        result = pathlib.Path(tmp) / "result.json"
+        argv = [sys.executable, "-m", "gtsam_schwarz.apps.bench", "--case", case.name, "--solver", solver,
+                "--params", json.dumps(overrides), "--datasets", str(datasets), "--result", str(result)]
+        child = run_child(argv, timeout, unlimited_stack=solver != "ours", env={**_child_env(), **(env or {})})
+        row = json.loads(result.read_text()) if child["status"] == "ok" and result.exists() else {}
+    if child["status"] == "ok" and not row:
+        child["status"] = "error: the child wrote no result"
+    status = f"failed: {row['failed']}" if row.get("failed") else child["status"]
+    keep = {"stderr": child["stderr"]} if status != "ok" else {}
+    return {"case": case.name, "solver": solver, **row, "status": status, "child_seconds": child["child_seconds"],
+            **keep}
+
+
+# -- figures derived from the runs ---------------------------------------------------------------
+def _num(v) -> float:
+    return float(v) if isinstance(v, (int, float)) and v is not None else float("nan")
+
+
+def _ratio(a, b) -> float:
+    a, b = _num(a), _num(b)
+    return a / b if math.isfinite(a) and math.isfinite(b) and b > 0 else float("nan")
+
+
+def add_comparisons(rows: list[dict]) -> None:
+    """Per case: relative error difference and time ratio to gtsam-lm; GTSAM solver / ours speedup."""
+    for case in dict.fromkeys(r["case"] for r in rows):
+        group = [r for r in rows if r["case"] == case]
+        ok = {r["solver"]: r for r in group if r["status"] == "ok"}
+        lm, ours = ok.get("gtsam-lm", {}), ok.get("ours", {})
+        e_lm = _num(lm.get("final_error"))
+        for r in group:
+            ok_row = r["status"] == "ok"
+            e = _num(r.get("final_error")) if ok_row else float("nan")
+            rel = abs(e - e_lm) / e_lm if math.isfinite(e) and math.isfinite(e_lm) and e_lm > 0 else float("nan")
+            r["rel_error_diff"] = rel
+            r["same_error"] = bool(rel <= TOLERANCE) if math.isfinite(rel) else None
+            r["ratio_to_gtsam_lm"] = _ratio(r.get("seconds"), lm.get("seconds")) if ok_row else float("nan")
+            r["over_ours"] = (_ratio(r.get("seconds"), ours.get("seconds"))
+                              if ok_row and r["solver"] in SPEEDUP_OVER_OURS else float("nan"))
+
+
+def _case_poses(case: Case, rows: list[dict]):
+    found = next((r["poses"] for r in rows if r["case"] == case.name and "poses" in r), None)
+    return found if found is not None else case.model_poses
+
+
+# -- Markdown ------------------------------------------------------------------------------------
+def _f(v, fmt: str, missing: str = "–") -> str:
+    v = _num(v)
+    return format(v, fmt) if math.isfinite(v) else missing
+
+
+def _table(header: list[str], rows: list[list[str]]) -> list[str]:
+    return markdown_table(header, rows, left=("case", "solver", "status", "stack"))
+
+
+def _same(r: dict) -> str:
+    if r.get("same_error") is None:
+        return "–"
+    return f"{r['rel_error_diff']:.1e} {'✓' if r['same_error'] else '✗'}"
+
+
+def _main_row(r: dict, poses) -> list[str]:
+    delta = _num(r.get("solve_peak_mib")) - _num(r.get("loaded_mib"))
+    return [r["case"], str(poses) if poses is not None else "?", r["solver"], r["status"],
+            _f(r.get("final_error"), ".10g"), _same(r), str(r.get("iterations", "–")),
+            _f(r.get("seconds"), ".3f"), _f(r.get("ratio_to_gtsam_lm"), ".2f"), _f(r.get("over_ours"), ".2f"),
+            _f(r.get("peak_mib"), ".0f"), _f(delta, ".0f"), r.get("stack", {}).get("text", "–")]
+
+
+def _split_row(r: dict) -> list[str]:
+    per = r.get("split_per_iteration", {})
+    total = r.get("split", {})
+    cells = [_f(_num(per.get(k)) * 1e3, ".1f") for k in PHASES]
+    return [r["case"], str(r.get("iterations", "–")), str(r.get("linear_solves", "–")), *cells,
+            _f(sum(_num(per.get(k)) for k in PHASES) * 1e3, ".1f"), _f(sum(_num(total.get(k)) for k in PHASES), ".3f"),
+            _f(r.get("cg_mean"), ".1f"), str(r.get("subdomains", "–")), str(r.get("coarse_size", "–"))]
+
+
+def _header(report: dict) -> list[str]:
+    m = report["machine"]
+    return [f"# Benchmark: size {report['size']}", "",
+            f"- command: `{report['command']}`",
+            f"- date: {report['date']}",
+            f"- machine: {m['cpu_count']} CPUs ({m['cpu']}), {m['memory_gib']} GiB, {m['platform']}",
+            f"- versions: Python {m['python']}, gtsam {m['gtsam']}, numpy {m['numpy']}, scipy {m['scipy']}, "
+            f"gtsam-schwarz {m['gtsam_schwarz']}; local factorizations: {m.get('sparse_backend', '?')}",
+            f"- ours: `SchwarzParams({', '.join(f'{k}={v!r}' for k, v in report['params'].items())})`; "
+            "GTSAM: `LevenbergMarquardtOptimizer` with default parameters (Cholesky; PCG with block-Jacobi; "
+            "SubgraphSolver; the iterative ones with CG tolerance 1e-8 relative and at most 20000 CG "
+            "iterations, as ours: GTSAM's default 1e-3 stops LM early at a worse error); all stop on "
+            "relative/absolute error decrease 1e-5 or 100 iterations",
+            f"- every run in its own child process, timeout {report['timeout']:g} s; GTSAM's children under "
+            "`ulimit -s unlimited`, ours with the default stack (column *stack*)", ""]
+
+
+LEGEND = ("*rel. diff vs LM*: |e − e_LM| / e_LM of the final error, ✓ when ≤ 1e-6; *seconds*: optimizer "
+          "construction + optimize(), problem loading excluded; *÷ GTSAM LM*: seconds / GTSAM LM's seconds (for "
+          "ours: the key figure ours / GTSAM-LM); *GTSAM ÷ ours*: that GTSAM solver's seconds / ours; *peak MiB*: "
+          "the child's peak RSS; *Δ MiB*: the peak RSS during the solve minus the RSS right after loading the "
+          "problem (the solver's own memory); *stack*: the "
+          "child's stack limit.")
+
+
+def markdown(report: dict) -> str:
+    """The header, the main table (one group of rows per case) and our time split."""
+    rows, poses = report["runs"], {c["name"]: c["poses"] for c in report["cases"]}
+    head = ["case", "poses", "solver", "status", "final error", "rel. diff vs LM", "its",
+            "seconds", "÷ GTSAM LM", "GTSAM ÷ ours", "peak MiB", "Δ MiB", "stack"]
+    out = _header(report) + _table(head, [_main_row(r, poses[r["case"]]) for r in rows]) + ["", LEGEND]
+    ours = [r for r in rows if r["solver"] == "ours" and r["status"] == "ok"]
+    if ours:
+        head = ["case", "its", "solves", "linearize", "export", "setup", "CG", "update", "ms / it",
+                "total s", "CG / solve", "subdomains", "coarse"]
+        out += ["", "## Our time split per nonlinear iteration (ms)", ""] + _table(head, [_split_row(r) for r in ours])
+    return "\n".join(out) + "\n"
+
+
+# -- the command ---------------------------------------------------------------------------------
+def _version(name: str) -> str:
+    try:
+        return importlib.metadata.version(name)
+    except importlib.metadata.PackageNotFoundError:
+        return "?"
+
+
+def _proc_field(path: str, key: str) -> str:
+    try:
+        with open(path) as f:
+            return next((l.split(":", 1)[1].strip() for l in f if l.startswith(key)), "?")
+    except OSError:
+        return "?"
+
+
+def machine() -> dict:
+    mem = _proc_field("/proc/meminfo", "MemTotal").split()
+    return {"cpu_count": os.cpu_count(), "cpu": _proc_field("/proc/cpuinfo", "model name"),
+            "memory_gib": round(int(mem[0]) / 2**20, 1) if mem and mem[0].isdigit() else None,
+            "platform": platform.platform(), "python": platform.python_version(), "gtsam": _version("gtsam"),
+            "numpy": _version("numpy"), "scipy": _version("scipy"), "gtsam_schwarz": _version("gtsam-schwarz"),
+            "sparse_backend": _sparse_backend()}
+
+
+def _sparse_backend() -> str:
+    """Which sparse Cholesky our local solves use (CHOLMOD when scikit-sparse is installed)."""
+    from ..solvers import SPARSE_BACKEND
+
+    return SPARSE_BACKEND + (f" (scikit-sparse {_version('scikit-sparse')})" if SPARSE_BACKEND == "cholmod" else "")
+
+
+def _parse_value(text: str):
+    """int, float, true/false, none, else the string."""
+    low = text.lower()
+    if low in ("none", "null"):
+        return None
+    if low in ("true", "false"):
+        return low == "true"
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
+def parse_params(items: list[str]) -> dict:
+    """``key=value`` overrides of SchwarzParams, validated by constructing the params."""
+    from .commands import UsageError
+    from ..nonlinear import SchwarzParams
+
+    names = [f.name for f in dataclasses.fields(SchwarzParams) if f.name != "iteration_hook"]
+    overrides = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or key.strip() not in names:
+            raise UsageError(f"--param {item!r}: expected KEY=VALUE with KEY one of {', '.join(names)}")
+        overrides[key.strip()] = _parse_value(value.strip())
+    try:
+        SchwarzParams(**{**BASE_PARAMS, **overrides})
+    except (ValueError, TypeError) as exc:
+        raise UsageError(f"--param: {exc}") from None
+    return overrides
+
+
+def _select(kind: str, text: str | None, valid: list[str], where: str = "") -> list[str]:
+    """The names of a comma list, in order, each checked against ``valid``."""
+    from .commands import UsageError
+
+    if text is None:
+        return list(valid)
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    bad = [n for n in names if n not in valid]
+    if bad or not names:
+        raise UsageError(f"--{kind} {text!r}: unknown {kind[:-1]} {bad[0] if bad else '(empty)'!r}{where}; "
+                         f"valid: {', '.join(valid)}")
+    return list(dict.fromkeys(names))
+
+
+def _check_inputs(cases: list[Case], datasets: pathlib.Path, out: str | None) -> None:
+    from .commands import UsageError
+
+    missing = [c.file for c in cases if c.file and not (datasets / c.file).is_file()]
+    if missing:
+        raise UsageError(f"dataset {datasets / missing[0]} not found (use --datasets DIR)")
+    if out and pathlib.Path(out).is_dir():
+        raise UsageError(f"--out {out}: is a directory, expected a Markdown file name")
+    parent = next((p for p in pathlib.Path(out or ".").resolve().parents if p.exists()), None) if out else None
+    if parent is not None and not os.access(parent, os.W_OK):
+        raise UsageError(f"--out {out}: {parent} is not writable")
+
+
+def _command(args, overrides: dict) -> str:
+    parts = ["gtsam-schwarz", "bench", "--size", args.size]
+    for flag, value in (("--cases", args.cases), ("--solvers", args.solvers), ("--datasets", args.datasets)):
+        if value is not None:
+            parts += [flag, str(value)]
+    if args.timeout != 600:
+        parts += ["--timeout", f"{args.timeout:g}"]
+    for key, value in overrides.items():
+        parts += ["--param", f"{key}={value}"]
+    return " ".join(shlex.quote(p) for p in parts)
+
+
+def benchmark(cases: list[Case], solvers: list[str], overrides: dict, datasets: pathlib.Path, timeout: float,
+              progress=None) -> list[dict]:
+    """Every (case, solver) in its own child, in order; comparisons added per case."""
+    jobs = [(c, s) for c in cases for s in solvers]
+    rows = []
+    for i, (case, solver) in enumerate(jobs, 1):
+        if progress:
+            progress(f"[{i}/{len(jobs)}] {case.name} {solver} …")
+        rows.append(run_solver(case, solver, overrides, datasets, timeout))
+        if progress:
+            seconds = rows[-1].get("seconds")
+            progress(f"        {rows[-1]['status']}" + (f", {seconds:.2f} s" if seconds is not None else ""))
+    add_comparisons(rows)
+    return rows
+
+
+def _report_head(args, overrides: dict, solvers: list[str]) -> dict:
+    """What the report says about the run itself: command, date, machine, parameters."""
+    from ..nonlinear import SchwarzParams
+
+    full = dataclasses.asdict(SchwarzParams(**{**BASE_PARAMS, **overrides}))
+    full.pop("iteration_hook", None)
+    return {"command": _command(args, overrides),
+            "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+            "machine": machine(), "size": args.size, "timeout": args.timeout, "tolerance": TOLERANCE,
+            "params": {**BASE_PARAMS, **overrides}, "params_full": full, "solvers": solvers}
+
+
+def run_bench(args) -> int:
+    from .jsonout import json_safe
+    from ..io import atomic_write
+
+    valid = [c.name for c in CASES[args.size]]
+    cases = [ALL_CASES[n] for n in _select("cases", args.cases, valid, f" for --size {args.size}")]
+    solvers = _select("solvers", args.solvers, list(SOLVERS))
+    overrides = parse_params(args.param)
+    datasets = pathlib.Path(args.datasets) if args.datasets else default_datasets_dir()
+    _check_inputs(cases, datasets, args.out)
+    progress = (lambda msg: print(msg, file=sys.stderr, flush=True)) if sys.stderr.isatty() else None
+    report = _report_head(args, overrides, solvers)
+    rows = benchmark(cases, solvers, overrides, datasets.resolve(), args.timeout, progress)
+    report["cases"] = [{"name": c.name, "description": c.description, "poses": _case_poses(c, rows)} for c in cases]
+    report["runs"] = rows
+    text = markdown(report)
+    if args.out:
+        atomic_write(args.out, text, parents=True)
+    if args.json:
+        print(json.dumps(json_safe(report), allow_nan=False))
+    else:
+        print(text, end="")
+    if args.out:
+        print(f"wrote {args.out}", file=sys.stderr)
+    return 0
+
+
+def add_bench(sub) -> None:
+    from .commands import positive_float
+
+    p = sub.add_parser("bench", help="ours against GTSAM's LM (Cholesky, PCG, subgraph), one child process per run",
+                       description="End-to-end solves of our LM (GDSW) against GTSAM's LevenbergMarquardtOptimizer "
+                                   "with Cholesky, PCG (block-Jacobi) and SubgraphSolver; every run in its own "
+                                   "child process (own peak memory; a crash or timeout is a row of the table).")
+    p.add_argument("--size", choices=SIZES, default="small",
+                   help="tiny: a few seconds; small: model problems, M3500, city10000, sphere2500; "
+                        "large: model problems with 262k and 1M poses (default small)")
+    p.add_argument("--cases", help="comma list of case names of the size (default: all)")
+    p.add_argument("--solvers", help=f"comma list from {','.join(SOLVERS)} (default: all)")
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                   help="a SchwarzParams override for ours (repeatable), e.g. --param subdomain_size=1000")
+    p.add_argument("--timeout", type=positive_float, default=600.0, metavar="SECONDS",
+                   help="per-run wall-clock limit; the child's process group is killed (default 600)")
+    p.add_argument("--datasets", default=None, metavar="DIR", help="folder of the datasets (../shared/datasets)")
+    p.add_argument("--out", metavar="FILE.md", help="also write the Markdown report to this file (atomically)")
+    p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+    p.set_defaults(run=run_bench)
+
+
+if __name__ == "__main__":
+    sys.exit(worker_main())

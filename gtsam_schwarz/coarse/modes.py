@@ -1,0 +1,115 @@
+"""Coarse basis functions on the interface: rigid-body or unit modes, GDSW and RGDSW partitions of unity.
+
+Each interface component gets the rigid-body modes of the pose graph (translations and rotation
+about the component's centroid) written in each pose's GTSAM tangent coordinates; without vertex
+geometry, the algebraic unit vectors per dof are used (the paper's choice, identical in span for
+single-pose components). GDSW: one set of modes per component. RGDSW: modes only on coarse nodes,
+spread to the other interface vertices with weights 1/#ancestors (paper Sec. 3.3).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..dd.geometry import VertexGeometry
+from ..dd.interface import Interface
+
+def rigid_modes(geometry: VertexGeometry, vertices: np.ndarray, centers: np.ndarray,
+                rotation: bool) -> np.ndarray:
+    """Rigid-body modes at ``vertices`` about ``centers`` in GTSAM tangent coordinates.
+
+    Returns (len(vertices), dim, n_modes). Pose2 tangent (v_x, v_y, ω): translation t ↦
+    (Rᵀt, 0), rotation about c ↦ (Rᵀ J (x − c), 1). Pose3 tangent (ω, v): translation t ↦
+    (0, Rᵀt), rotation about axis e_k at c ↦ (Rᵀe_k, Rᵀ(e_k × (x − c))).
+    """
+    R = geometry.rotations[vertices]
+    Rt = np.swapaxes(R, 1, 2)
+    r = geometry.positions[vertices] - centers
+    m = len(vertices)
+    if geometry.d == 2:
+        modes = np.zeros((m, 3, 3))
+        modes[:, :2, 0:2] = Rt  # translations x, y
+        perp = np.stack([-r[:, 1], r[:, 0]], axis=1)  # J (x − c)
+        modes[:, :2, 2] = np.einsum("mij,mj->mi", Rt, perp)
+        modes[:, 2, 2] = 1.0
+        return modes if rotation else modes[:, :, :2]
+    modes = np.zeros((m, 6, 6))
+    modes[:, 3:, 0:3] = Rt  # translations
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = 1.0
+        modes[:, :3, 3 + k] = Rt[:, :, k]
+        modes[:, 3:, 3 + k] = np.einsum("mij,mj->mi", Rt, np.cross(e, r))
+    return modes if rotation else modes[:, :, :3]
+
+
+def gdsw_partition(interface: Interface):
+    """GDSW: every interface component is a coarse node; each of its vertices has weight 1.
+
+    Returns (vertex, node, weight) pairs — interface vertex index, coarse node (component), weight —
+    and the coarse nodes."""
+    nverts = interface.size
+    return np.arange(nverts), interface.component, np.ones(nverts), np.arange(interface.n_components)
+
+
+def rgdsw_partition(interface: Interface):
+    """RGDSW: coarse nodes are the components with maximal subdomain sets; every interface vertex
+    takes weight 1/#ancestors from each ancestor node (a partition of unity on Γ)."""
+    is_node, anc = interface.coarse_nodes()
+    A = sp.csr_matrix(anc[interface.component])  # interface vertex × ancestor node
+    counts = np.diff(A.indptr)
+    pair_v = np.repeat(np.arange(interface.size), counts)
+    return pair_v, A.indices, 1.0 / counts[pair_v], np.flatnonzero(is_node)
+
+
+# interface partitions of unity by name: a new coarse space is one function plus one line here
+COARSE_SPACES = {"gdsw": gdsw_partition, "rgdsw": rgdsw_partition}
+
+
+def interface_values(interface: Interface, offsets: np.ndarray, kind: str = "gdsw",
+                     geometry: VertexGeometry | None = None, rotation: bool = True,
+                     translation_mask: np.ndarray | None = None):
+    """Φ_Γ as triplets (global dof, column, value) and the interface component of each column."""
+    try:
+        partition_of_unity = COARSE_SPACES[kind]
+    except KeyError:
+        raise ValueError(f"unknown coarse space {kind!r}; choose one of {', '.join(COARSE_SPACES)}") from None
+    comp = interface.component
+    pair_v, pair_node, weight, nodes = partition_of_unity(interface)
+    node_col = np.full(interface.n_components, -1, dtype=np.int64)
+    node_col[nodes] = np.arange(len(nodes))
+    verts = interface.vertices[pair_v]
+    starts = offsets[verts]
+    dim = int(offsets[verts[0] + 1] - starts[0]) if len(verts) else 0
+    uniform = len(verts) and np.all(offsets[verts + 1] - starts == dim)
+    if geometry is not None and uniform and dim == {2: 3, 3: 6}[geometry.d]:
+        # centroid of every coarse node's own vertices
+        cnt = np.bincount(comp, minlength=interface.n_components)
+        centers = np.stack([np.bincount(comp, weights=geometry.positions[interface.vertices, k],
+                                        minlength=interface.n_components) for k in range(geometry.d)], 1)
+        centers /= np.maximum(cnt, 1)[:, None]
+        M = rigid_modes(geometry, verts, centers[pair_node], rotation)  # (pairs, dim, modes)
+        n_modes = M.shape[2]
+        rows = (starts[:, None, None] + np.arange(dim)[None, :, None]).repeat(n_modes, 2)
+        cols = (node_col[pair_node][:, None, None] * n_modes + np.arange(n_modes)[None, None, :]).repeat(dim, 1)
+        vals = M * weight[:, None, None]
+    else:
+        # algebraic modes: a unit vector per selected dof (paper Sec. 3.3, "(0,0,1) at the node")
+        dims = offsets[verts + 1] - starts
+        n_modes = int(dims.max()) if len(dims) else 0
+        p = np.repeat(np.arange(len(verts)), dims)
+        local = np.arange(int(dims.sum())) - np.repeat(np.cumsum(dims) - dims, dims)
+        rows = starts[p] + local
+        cols = node_col[pair_node][p] * n_modes + local
+        vals = weight[p]
+        if not rotation and translation_mask is not None:
+            keep = translation_mask[rows]
+            rows, cols, vals = rows[keep], cols[keep], vals[keep]
+    rows, cols, vals = np.ravel(rows), np.ravel(cols), np.ravel(vals)
+    nz = vals != 0.0
+    rows, cols, vals = rows[nz], cols[nz], vals[nz]
+    # renumber columns densely (drops modes that vanish everywhere, e.g. unused dofs)
+    used, cols = np.unique(cols, return_inverse=True)
+    column_component = nodes[used // max(n_modes, 1)]
+    return rows, cols.ravel(), vals, column_component

@@ -1,0 +1,45 @@
+"""Dof index sets of (overlapping) subdomains, concatenated so that no loop over subdomains is needed."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+
+def vertex_dofs(vertices: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Concatenated dof indices of ``vertices`` (each vertex v owns offsets[v]:offsets[v+1])."""
+    vertices = np.asarray(vertices, dtype=np.int64)
+    starts = offsets[vertices]
+    dims = offsets[vertices + 1] - starts
+    first = np.repeat(np.cumsum(dims) - dims, dims)
+    return np.repeat(starts, dims) + np.arange(int(dims.sum())) - first
+
+
+@dataclass(frozen=True)
+class IndexSets:
+    """N possibly overlapping dof sets I_i, concatenated: set i is ``indices[ptr[i]:ptr[i+1]]``."""
+
+    indices: np.ndarray
+    ptr: np.ndarray
+    n: int  # global dimension
+
+    @property
+    def count(self) -> int:
+        return len(self.ptr) - 1
+
+    @property
+    def sizes(self) -> np.ndarray:
+        return np.diff(self.ptr)
+
+    def block_of_entry(self) -> np.ndarray:
+        return np.repeat(np.arange(self.count), self.sizes)
+
+    def restriction(self) -> sp.csr_matrix:
+        """Stacked restriction R = [R_1; …; R_N] (len(indices) × n)."""
+        m = len(self.indices)
+        return sp.csr_matrix((np.ones(m), (np.arange(m), self.indices)), shape=(m, self.n))
+
+    def get(self, i: int) -> np.ndarray:
+        return self.indices[self.ptr[i]:self.ptr[i + 1]]

@@ -1,0 +1,89 @@
+"""Partitioners: edge → subdomain maps, by name (a registry, like the preconditioners').
+
+Each partitioner takes a :class:`GraphStructure` and a number of subdomains and returns the
+subdomain of every edge (the paper's nonoverlapping edge subdomains E_i, Sec. 3.1).
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import pymetis  # the field's standard graph partitioner
+
+from .structure import GraphStructure
+
+
+def segment_partition(structure: GraphStructure, n_subdomains: int) -> np.ndarray:
+    """N contiguous trajectory segments: edge → subdomain.
+
+    Odometry edge (u, u+1) sits at position u; a loop closure (u, v) at position v−1, i.e. with the
+    segment in which it is observed (its later pose). Positions 0..n−2 are cut into N equal ranges,
+    so on the paper's model problem with N = loops every loop (with its closure) is one subdomain.
+    """
+    npos = max(structure.n_vertices - 1, 1)
+    N = int(min(max(int(n_subdomains), 1), npos))
+    u, v = structure.edges[:, 0], structure.edges[:, 1]
+    pos = np.where(structure.odometry, u, v - 1)
+    return (pos * N) // npos
+
+
+def metis_partition(structure: GraphStructure, n_subdomains: int, seed: int = 0) -> np.ndarray:
+    """Edge → subdomain from a METIS k-way partition of the vertices (pymetis).
+
+    An edge inside a vertex part goes to that part; a cut edge goes to the part of its later
+    vertex, so its earlier vertex becomes an interface pose.
+    """
+    nv = structure.n_vertices
+    N = int(min(max(int(n_subdomains), 1), max(nv, 1)))
+    if N == 1 or len(structure.edges) == 0:
+        return np.zeros(len(structure.edges), dtype=np.int64)
+    adj = structure.adjacency()
+    adj.sort_indices()
+    opts = pymetis.Options(seed=seed)
+    _, parts = pymetis.part_graph(N, adjacency=pymetis.CSRAdjacency(adj.indptr, adj.indices), options=opts)
+    parts = np.asarray(parts, dtype=np.int64)
+    return parts[structure.edges[:, 1]]
+
+
+def interface_count(structure: GraphStructure, edge_subdomain: np.ndarray) -> int:
+    """Vertices whose edges lie in two or more subdomains (the size of Γ for this edge partition)."""
+    e = structure.edges
+    v = np.r_[e[:, 0], e[:, 1]]
+    part = np.r_[edge_subdomain, edge_subdomain]
+    n_parts = int(part.max(initial=0)) + 1
+    verts = np.unique(v * np.int64(n_parts) + part) // n_parts  # one entry per (vertex, subdomain)
+    return int(np.count_nonzero(np.bincount(verts, minlength=structure.n_vertices) >= 2))
+
+
+def auto_partition(structure: GraphStructure, n_subdomains: int) -> np.ndarray:
+    """Trajectory segments or METIS, whichever has the smaller interface (so the smaller coarse space).
+
+    Segments are the paper's choice and win on its model problem (one loop per subdomain, 2
+    interface poses each); on real datasets with loop closures across the whole map they cut
+    far more (M3500: 915 coarse functions against 252 with METIS)."""
+    seg = segment_partition(structure, n_subdomains)
+    met = metis_partition(structure, n_subdomains)
+    return seg if interface_count(structure, seg) <= interface_count(structure, met) else met
+
+
+def default_subdomains(n_vertices: int, subdomain_size: int = 500) -> int:
+    """Number of subdomains chosen from the size: about ``subdomain_size`` poses each."""
+    return max(1, int(round(n_vertices / max(subdomain_size, 1))))
+
+
+PARTITIONERS: dict[str, Callable[[GraphStructure, int], np.ndarray]] = {
+    "auto": auto_partition,
+    "segments": segment_partition,
+    "metis": metis_partition,
+}
+PARTITIONS = tuple(PARTITIONERS)
+
+
+def partition_edges(structure: GraphStructure, n_subdomains: int, name: str = "auto") -> np.ndarray:
+    """Edge → subdomain by the partitioner registered as ``name``."""
+    try:
+        partitioner = PARTITIONERS[name]
+    except KeyError:
+        raise ValueError(f"unknown partition {name!r}; choose one of {', '.join(PARTITIONERS)}") from None
+    return partitioner(structure, n_subdomains)

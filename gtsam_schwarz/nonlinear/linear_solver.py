@@ -1,0 +1,177 @@
+"""The linear-solve strategy of the nonlinear loop: H δ = −g by a direct factorization or by
+preconditioned CG, with the preconditioner kept across linearizations (lagging) and inexact-Newton
+forcing. The optimizer asks a :class:`LinearSolver` for a step and knows no preconditioner by name.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..dd.decomposition import decompose
+from ..dd.geometry import VertexGeometry
+from ..dd.partition import default_subdomains
+from ..dd.structure import GraphStructure
+from ..krylov import pcg
+from ..schwarz import create_preconditioner
+from ..solvers import SparseCholesky, SparsityPattern
+from .params import LinearSolverParams
+from .records import SolveResult
+
+Geometry = Callable[[], VertexGeometry | None]
+
+
+class LinearSolver:
+    """Solves H x = rhs for successive matrices of one graph (same pattern, new numbers)."""
+
+    decomposition = None
+
+    def solve(self, H: sp.csr_matrix, rhs: np.ndarray, tol: float, geometry: Geometry) -> SolveResult:
+        raise NotImplementedError
+
+    def moved(self, step_max: float) -> None:
+        """The linearization point moved by an accepted step of max-norm ``step_max``."""
+
+
+class DirectSolver(LinearSolver):
+    """Sparse Cholesky of H (CHOLMOD with one symbolic analysis, or SuperLU): the reference."""
+
+    def __init__(self):
+        self._pattern = self._factor = None
+
+    def solve(self, H, rhs, tol, geometry):
+        t0 = time.perf_counter()
+        H = sp.csr_matrix(H)
+        if self._factor is None or not self._pattern.matches(H):
+            self._pattern, self._factor = SparsityPattern(H), SparseCholesky(H, "the Gauss-Newton matrix")
+        else:
+            self._factor.refactor(H)
+        x = self._factor.solve(rhs)
+        return SolveResult(x=x, setup_seconds=time.perf_counter() - t0, tolerance=0.0)
+
+
+class PreconditionedCG(LinearSolver):
+    """CG preconditioned by the registered operator ``params.preconditioner``.
+
+    The decomposition and the operator's symbolic setup are done on the first solve; afterwards
+    each solve updates the operator's numbers, or keeps them (lagged) while the poses have moved
+    less than ``lag_distance`` since the build.
+    """
+
+    def __init__(self, params: LinearSolverParams, offsets: np.ndarray, translation_mask: np.ndarray):
+        self.params = params
+        self.offsets = np.asarray(offsets, dtype=np.int64)
+        self.translation_mask = translation_mask
+        self.operator = None
+        self._cg_after_build = None  # CG iterations of the first solve after the last numeric build
+        self._moved = float("inf")  # max-norm of the accepted steps since the preconditioner's build
+        self._rebuilt = True  # the last solve recomputed the preconditioner's numbers
+
+    def n_subdomains(self) -> int:
+        p = self.params
+        nv = len(self.offsets) - 1
+        return p.subdomains if p.subdomains is not None else default_subdomains(nv, p.subdomain_size)
+
+    def _decompose(self, H):
+        if self.decomposition is None:
+            p = self.params
+            structure = GraphStructure.from_matrix(H, self.offsets)
+            self.decomposition = decompose(structure, self.n_subdomains(), p.partition, p.overlap, p.grow_along)
+        return self.decomposition
+
+    def moved(self, step_max: float) -> None:
+        self._moved += step_max
+
+    def _lag_cap(self) -> int | None:
+        """Lagged preconditioner: keep the previous M while the linearization point has moved less
+        than ``lag_distance`` (sum of the steps' max-norms since M was built; a rejected LM step
+        moves nothing, only λ changes). CG may then use it for at most ``lag_growth`` × its count
+        right after the build; None: build M anew."""
+        p = self.params
+        if (not p.lagged_preconditioner or self.operator is None or self._cg_after_build is None
+                or self._moved >= p.lag_distance):
+            return None
+        return int(p.lag_growth * self._cg_after_build) + 2
+
+    def preconditioner(self, H, geometry: Geometry, lag: bool = False):
+        """The operator for H: created and set up on the first call, afterwards updated in place
+        (same subdomains, interface, submatrix patterns and symbolic factorizations; new numbers).
+        ``lag=True`` returns the previous one unchanged."""
+        p = self.params
+        M = self.operator
+        self._rebuilt = not (lag and M is not None)
+        if M is None or (not lag and not p.reuse_symbolic):
+            M = create_preconditioner(p.preconditioner, H.shape[0], self._decompose(H), self.translation_mask,
+                                      interface_grouping=p.interface_grouping, coarse_modes=p.coarse_modes)
+            M.setup(H)
+            self.operator = M
+        elif lag:
+            return M
+        return M.update(H, geometry() if M.uses_geometry else None)
+
+    def solve(self, H, rhs, tol, geometry):
+        """Preconditioned CG to relative residual ``tol``. A lagged preconditioner that lets CG
+        exceed its iteration cap is rebuilt for H and CG continues from where it stopped."""
+        p = self.params
+        t0 = time.perf_counter()
+        cap = self._lag_cap()
+        M = self.preconditioner(H, geometry, lag=cap is not None)
+        setup = time.perf_counter() - t0
+        x, info = pcg(H, rhs, M, tol=tol, maxiter=cap if cap is not None else p.cg_max_iterations)
+        iterations, residuals = info.iterations, list(info.residuals)
+        lagged = cap is not None
+        if lagged and not info.converged:  # stale: rebuild for H, continue from x
+            t2 = time.perf_counter()
+            M = self.preconditioner(H, geometry)
+            setup += time.perf_counter() - t2
+            x, info = pcg(H, rhs, M, tol=tol, maxiter=p.cg_max_iterations, x0=x)
+            iterations += info.iterations
+            residuals += info.residuals[1:]
+            self._moved = 0.0  # the warm-started count is no reference: keep the previous one
+        elif self._rebuilt:
+            self._cg_after_build, self._moved = info.iterations, 0.0
+        return SolveResult(x=x, iterations=iterations, converged=info.converged,
+                           lambda_min=info.lambda_min, lambda_max=info.lambda_max,
+                           residuals=residuals, tolerance=tol, setup_seconds=setup,
+                           coarse_size=M.coarse_size, rebuilt=self._rebuilt, lagged=lagged)
+
+
+def make_linear_solver(params: LinearSolverParams, offsets: np.ndarray, translation_mask: np.ndarray) -> LinearSolver:
+    """"direct" → :class:`DirectSolver`; any registered preconditioner → :class:`PreconditionedCG`."""
+    if params.preconditioner == "direct":
+        return DirectSolver()
+    return PreconditionedCG(params, offsets, translation_mask)
+
+
+class Forcing:
+    """CG tolerance per Newton step: fixed ``cg_tol``, or Eisenstat–Walker's choice 2 forcing term
+    η_k = 0.9 (‖g_k‖/‖g_{k−1}‖)², safeguarded by 0.9 η_{k−1}² and capped at ``forcing_max``.
+
+    ``exact_next`` makes the next solve exact (after a small decrease from an inexact step, or to
+    retry a rejected LM step)."""
+
+    def __init__(self, params: LinearSolverParams):
+        self.params = params
+        self.previous = None  # (gradient norm, η) of the previous linear solve
+        self.exact_next = False
+
+    def tolerance(self, gnorm: float) -> float:
+        p = self.params
+        if p.forcing == "none" or self.exact_next:
+            return p.cg_tol
+        if self.previous is None:
+            eta = p.forcing_max
+        else:
+            g_prev, eta_prev = self.previous
+            eta = 0.9 * (gnorm / g_prev) ** 2
+            safeguard = 0.9 * eta_prev ** 2
+            if safeguard > 0.1:
+                eta = max(eta, safeguard)
+            eta = min(eta, p.forcing_max)
+        return max(eta, p.cg_tol)
+
+    def solved(self, gnorm: float, tol: float) -> None:
+        self.previous = (gnorm, tol)

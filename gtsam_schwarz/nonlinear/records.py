@@ -1,0 +1,76 @@
+"""Typed records of the nonlinear loop: one :class:`IterationRecord` per linear solve."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+
+PHASES = ("linearize", "export", "setup", "cg", "update")
+
+
+@dataclass
+class SolveResult:
+    """What a linear solver returns: the step and how it was found."""
+
+    x: np.ndarray
+    iterations: int = 0
+    converged: bool = True
+    lambda_min: float = float("nan")
+    lambda_max: float = float("nan")
+    residuals: list = field(default_factory=list)
+    tolerance: float = float("nan")
+    setup_seconds: float = 0.0
+    coarse_size: int = 0
+    rebuilt: bool = True  # the preconditioner's numbers were recomputed for this matrix
+    lagged: bool = False  # CG started with the previous preconditioner (lagged)
+
+
+@dataclass
+class IterationRecord(Mapping):
+    """One linear solve of the nonlinear loop (LM may try several per iteration; ``accepted``
+    tells which step was kept). Readable as a dict too: ``record["cg_iterations"]``, ``dict(record)``."""
+
+    iteration: int
+    error_before: float
+    error: float
+    gradient_norm: float
+    step_norm: float
+    step_max: float
+    lambda_: float  # the damping of this solve (key "lambda")
+    model_fidelity: float
+    predicted_decrease: float
+    cg_iterations: int
+    cg_converged: bool
+    cg_tolerance: float
+    lambda_min: float  # Lanczos estimates of the preconditioned operator's spectrum
+    lambda_max: float
+    coarse_size: int
+    preconditioner_rebuilt: bool
+    preconditioner_lagged: bool
+    cg_residuals: list
+    accepted: bool = False
+    seconds: dict = field(default_factory=dict)  # per phase: linearize, export, setup, cg, update
+
+    @staticmethod
+    def _attr(key: str) -> str:
+        return "lambda_" if key == "lambda" else key
+
+    def __getitem__(self, key: str):
+        if key == "lambda_" or key not in _KEYS:
+            raise KeyError(key)
+        return getattr(self, self._attr(key))
+
+    def __iter__(self):
+        return iter(_KEYS)
+
+    def __len__(self) -> int:
+        return len(_KEYS)
+
+    def to_dict(self) -> dict:
+        """The record as the plain dict the JSON output has always had."""
+        return {k: self[k] for k in _KEYS}
+
+
+_KEYS = tuple("lambda" if f.name == "lambda_" else f.name for f in fields(IterationRecord))

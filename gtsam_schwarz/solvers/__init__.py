@@ -1,0 +1,13 @@
+"""Local and coarse solvers: CHOLMOD, SuperLU and dense Cholesky behind one interface, a registry."""
+
+from .base import LOCAL_SOLVERS, LocalSolver, SingularLocalMatrixError, make_solver, register_solver
+from .block_diagonal import BlockDiagonalSolver, block_diagonal
+from .dense import DenseCholesky
+from .factory import DENSE_FACTOR_MAX, factorize
+from .gather import Gather, SparsityPattern
+from .sparse import HAVE_CHOLMOD, SPARSE_BACKEND, CholmodCholesky, SparseCholesky, SuperLUCholesky
+
+__all__ = ["BlockDiagonalSolver", "CholmodCholesky", "DENSE_FACTOR_MAX", "DenseCholesky", "Gather",
+           "HAVE_CHOLMOD", "LOCAL_SOLVERS", "LocalSolver", "SPARSE_BACKEND", "SingularLocalMatrixError",
+           "SparseCholesky", "SparsityPattern", "SuperLUCholesky", "block_diagonal", "factorize",
+           "make_solver", "register_solver"]

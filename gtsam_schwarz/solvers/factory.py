@@ -1,0 +1,30 @@
+"""Choose a factorization for a matrix: dense Cholesky when small and fairly full, else sparse."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from .base import LocalSolver
+from .dense import DenseCholesky
+from .sparse import SparseCholesky
+
+DENSE_FACTOR_MAX = 4000  # a matrix this small and at least 10 % full is factorized densely
+
+
+def _zero_solver(rhs):
+    return np.zeros_like(rhs)
+
+
+def factorize(K: sp.spmatrix, what: str = "local matrix") -> LocalSolver:
+    """Factorize an SPD matrix; returns a solver callable as ``solve(rhs)``.
+
+    Small, fairly dense matrices (e.g. a coarse matrix A_0) get a dense Cholesky, everything else
+    a sparse Cholesky (:class:`SparseCholesky`). A singular matrix raises a clear error.
+    """
+    n = K.shape[0]
+    if n == 0:
+        return _zero_solver
+    if n <= DENSE_FACTOR_MAX and K.nnz >= 0.1 * n * n:
+        return DenseCholesky(K, what)
+    return SparseCholesky(K, what)

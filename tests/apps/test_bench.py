@@ -1,0 +1,129 @@
+"""``gtsam-schwarz bench``: the tiny size end to end (subprocess), and the child runner's crash/timeout rows.
+
+No timing assertions: only that every figure is there and sane.
+"""
+
+import ast
+import json
+import math
+import pathlib
+import resource
+import subprocess
+import sys
+
+import pytest
+
+from gtsam_schwarz.apps.bench import PHASES, SOLVERS, run_child
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+STACK = resource.getrlimit(resource.RLIMIT_STACK)  # (soft, hard) that the bench's children inherit
+
+
+def _limit(value):
+    return None if value == resource.RLIM_INFINITY else value
+
+
+def bench(*args, timeout=300):
+    return subprocess.run([sys.executable, "-m", "gtsam_schwarz.apps.cli", "bench", "--size", "tiny", *map(str, args)],
+                          capture_output=True, text=True, cwd=ROOT, timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def report():
+    proc = bench("--json")
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.strip().splitlines()
+    assert len(lines) == 1, proc.stdout  # exactly one JSON object, nothing else
+    return json.loads(lines[0])
+
+
+def test_every_run_is_ok_and_ours_matches_gtsam_lm(report):
+    runs = report["runs"]
+    assert [c["name"] for c in report["cases"]] == ["sq8x16", "smallGrid3D"]
+    assert {(r["case"], r["solver"]) for r in runs} == {(c, s) for c in ("sq8x16", "smallGrid3D") for s in SOLVERS}
+    assert all(r["status"] == "ok" for r in runs), [(r["case"], r["solver"], r["status"]) for r in runs]
+    for case in ("sq8x16", "smallGrid3D"):
+        by = {r["solver"]: r for r in runs if r["case"] == case}
+        ours, lm = by["ours"], by["gtsam-lm"]
+        assert abs(ours["final_error"] - lm["final_error"]) <= 1e-6 * lm["final_error"]
+        assert ours["rel_error_diff"] <= 1e-6 and ours["same_error"] is True
+
+
+def test_ratios_memory_and_stack_figures(report):
+    for r in report["runs"]:
+        assert math.isfinite(r["ratio_to_gtsam_lm"]) and r["ratio_to_gtsam_lm"] > 0
+        assert r["seconds"] > 0 and r["iterations"] >= 1 and r["poses"] > 0
+        assert r["peak_mib"] >= r["loaded_mib"] > 0 and 0 < r["solve_peak_mib"] <= r["peak_mib"]
+        if r["solver"] in ("gtsam-lm-pcg", "gtsam-lm-subgraph"):
+            assert math.isfinite(r["over_ours"]) and r["over_ours"] > 0
+        # GTSAM's children run with the stack limit raised as far as allowed, ours with the inherited one
+        expected = STACK[1] if r["solver"] != "ours" else STACK[0]
+        assert r["stack"]["bytes"] == _limit(expected)
+
+
+def test_our_split_has_the_five_phases(report):
+    for r in (r for r in report["runs"] if r["solver"] == "ours"):
+        assert set(r["split"]) == set(PHASES) and set(r["split_per_iteration"]) == set(PHASES)
+        for k in PHASES:
+            assert r["split"][k] >= 0
+            assert r["split_per_iteration"][k] == pytest.approx(r["split"][k] / r["iterations"])
+        assert r["cg_mean"] > 0 and r["subdomains"] >= 1 and r["coarse_size"] >= 0
+
+
+def test_report_records_machine_command_and_params(report):
+    m = report["machine"]
+    assert m["cpu_count"] >= 1 and m["gtsam"] and m["numpy"] and m["scipy"]
+    assert report["command"].startswith("gtsam-schwarz bench --size tiny")
+    assert report["params"] == {"method": "lm", "preconditioner": "gdsw"}
+    assert report["params_full"]["max_iterations"] == 100
+
+
+def test_markdown_table_and_out_file(tmp_path):
+    out = tmp_path / "sub" / "bench.md"
+    proc = bench("--cases", "sq8x16", "--solvers", "ours,gtsam-lm", "--param", "subdomains=2", "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    assert "| case | poses | solver |" in proc.stdout and "| sq8x16 | 513 | ours | ok |" in proc.stdout
+    assert "time split per nonlinear iteration" in proc.stdout and "subdomains=2" in proc.stdout
+    text = out.read_text()
+    assert text.startswith("# Benchmark: size tiny") and "| sq8x16 | 513 | gtsam-lm | ok |" in text
+    assert "--param subdomains=2" in text
+
+
+@pytest.mark.parametrize("args, words", [(("--cases", "sq8x16,nope"), ("nope", "sq8x16", "smallGrid3D")),
+                                         (("--solvers", "ours,cholmod"), ("cholmod", "gtsam-lm-pcg")),
+                                         (("--param", "no_such=1"), ("no_such",))])
+def test_bad_names_are_one_line_usage_errors(args, words):
+    proc = bench(*args)
+    assert proc.returncode == 2 and proc.stdout == ""
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert all(w in lines[0] for w in words), lines[0]
+
+
+def test_run_child_reports_a_crash_as_a_crash():
+    r = run_child([sys.executable, "-c", "import os, signal; os.kill(os.getpid(), signal.SIGSEGV)"], timeout=60)
+    assert r["status"] == "crashed (SIGSEGV)"
+    r = run_child([sys.executable, "-c", "import os, signal; os.kill(os.getpid(), signal.SIGSEGV)"], timeout=60,
+                  unlimited_stack=True)
+    assert r["status"] == "crashed (SIGSEGV)"
+
+
+def test_run_child_reports_a_timeout_and_kills_the_child():
+    r = run_child([sys.executable, "-c", "import time; time.sleep(60)"], timeout=0.5)
+    assert r["status"] == "timeout after 0.5 s"
+    assert r["child_seconds"] < 30
+
+
+def test_run_child_reports_an_error_with_the_last_stderr_line():
+    r = run_child([sys.executable, "-c", "import sys; print('first', file=sys.stderr); sys.exit('last words')"],
+                  timeout=60)
+    assert r["status"] == "error (exit 1): last words"
+
+
+def test_run_child_raises_the_stack_limit_only_when_asked():
+    code = "import resource; print(resource.getrlimit(resource.RLIMIT_STACK))"
+    default = run_child([sys.executable, "-c", code], timeout=60)
+    raised = run_child([sys.executable, "-c", code], timeout=60, unlimited_stack=True)
+    assert raised["status"] == default["status"] == "ok"
+    assert ast.literal_eval(default["stdout"].strip()) == STACK
+    assert ast.literal_eval(raised["stdout"].strip()) == (STACK[1], STACK[1])  # unlimited where the hard limit allows

@@ -1,0 +1,137 @@
+"""The gtsam-schwarz command line, run as a user would (subprocess)."""
+
+import json
+import subprocess
+import sys
+
+import gtsam
+import pytest
+
+from conftest import dataset
+from gtsam_schwarz import load_graph
+
+
+def cli(*args, cwd=None, timeout=600):
+    return subprocess.run([sys.executable, "-m", "gtsam_schwarz.apps.cli", *map(str, args)], capture_output=True,
+                          text=True, cwd=cwd, timeout=timeout)
+
+
+def one_line_error(proc, *words):
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    for w in words:
+        assert w in lines[0], lines[0]
+
+
+@pytest.fixture(scope="module")
+def small_g2o(tmp_path_factory):
+    path = tmp_path_factory.mktemp("synth") / "loops.g2o"
+    proc = cli("synth", "--loops", 4, "--points-per-side", 4, "--sigma", 0.02, "--seed", 1, "-o", path)
+    assert proc.returncode == 0, proc.stderr
+    assert "wrote" in proc.stdout
+    return path
+
+
+def test_synth_writes_the_model_problem_with_dead_reckoning(small_g2o):
+    loaded = load_graph(small_g2o)
+    assert loaded.poses == 4 * 4 * 4 + 1 and loaded.edges == 64 + 4
+    assert loaded.initial_guess == "file"
+    # the VERTEX lines are dead reckoning: every odometry factor has zero error there
+    g = loaded.graph
+    odo = [g.at(i) for i in range(g.size()) if len(g.at(i).keys()) == 2
+           and g.at(i).keys()[1] == g.at(i).keys()[0] + 1]
+    assert len(odo) == 64 and max(f.error(loaded.initial) for f in odo) < 1e-12
+
+
+def test_synth_refuses_to_overwrite_without_force(small_g2o):
+    one_line_error(cli("synth", "--loops", 2, "--points-per-side", 2, "-o", small_g2o), "exists")
+
+
+def test_solve_json_matches_gtsam_lm(small_g2o, tmp_path):
+    out, plot = tmp_path / "opt.g2o", tmp_path / "opt.png"
+    proc = cli("solve", small_g2o, "--json", "--subdomains", 4, "--partition", "segments", "-o", out, "--plot", plot)
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout)
+    for key in ("poses", "edges", "dimension", "method", "preconditioner", "subdomains", "overlap", "iterations",
+                "cg_iterations", "cg_mean", "initial_error", "final_error", "converged", "seconds"):
+        assert key in report
+    assert set(report["seconds"]) >= {"total", "linearize", "setup", "cg"}
+    assert report["method"] == "lm" and report["preconditioner"] == "gdsw" and report["subdomains"] == 4
+    assert report["converged"] and report["final_error"] < report["initial_error"]
+    loaded = load_graph(small_g2o)
+    ref = gtsam.LevenbergMarquardtOptimizer(loaded.graph, loaded.initial, gtsam.LevenbergMarquardtParams()).optimize()
+    assert report["final_error"] <= loaded.graph.error(ref) * (1 + 1e-6)
+    written = load_graph(out)
+    assert written.graph.error(written.initial) == pytest.approx(report["final_error"], rel=1e-6)
+    assert plot.stat().st_size > 1000
+
+
+def test_solve_human_output_has_a_line_per_iteration(small_g2o):
+    proc = cli("solve", small_g2o, "--method", "gn", "--preconditioner", "one-level", "--subdomains", 2)
+    assert proc.returncode == 0, proc.stderr
+    iters = [line for line in proc.stdout.splitlines() if line.strip().startswith("iter")]
+    assert iters and "converged" in proc.stdout.splitlines()[-1] or "stopped" in proc.stdout
+
+
+def test_solve_refuses_to_overwrite_its_input(small_g2o):
+    before = small_g2o.read_bytes()
+    one_line_error(cli("solve", small_g2o, "-o", small_g2o), "input")
+    assert small_g2o.read_bytes() == before
+
+
+@pytest.mark.parametrize("args, words", [
+    (("solve", "/no/such/file.g2o"), ["no such file"]),
+    (("solve", "{data}", "--preconditioner", "ilu"), ["invalid choice", "ilu"]),
+    (("solve", "{data}", "--subdomains", "zero"), ["expected an integer"]),
+    (("solve", "{data}", "--cg-tol", "-1"), ["expected a number > 0"]),
+    (("compare", "/no/such/file.g2o"), ["no such file"]),
+    (("synth", "--loops", "2"), ["required"]),
+])
+def test_bad_input_is_one_line_exit_2(small_g2o, args, words):
+    args = [a.replace("{data}", str(small_g2o)) for a in args]
+    one_line_error(cli(*args), *words)
+
+
+def test_malformed_file_names_the_line(tmp_path):
+    bad = tmp_path / "bad.g2o"
+    bad.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nEDGE_SE2 0 1 1 0 abc 1 0 0 1 0 1\n")
+    one_line_error(cli("solve", bad), "bad.g2o:3", "dtheta")
+
+
+@pytest.mark.datasets
+def test_compare_json_rows(tmp_path):
+    proc = cli("compare", dataset("MIT.g2o"), "--json")
+    assert proc.returncode == 0, proc.stderr
+    rows = json.loads(proc.stdout)["rows"]
+    names = [r["solver"] for r in rows]
+    for want in ("gtsam-lm", "gtsam-gn", "gtsam-lm-pcg", "gtsam-lm-subgraph"):
+        assert want in names
+    assert any(n.endswith("gdsw") for n in names) and any(n.endswith("block-jacobi") for n in names)
+    for r in rows:
+        assert {"solver", "final_error", "iterations", "seconds"} <= set(r)
+    ref = next(r for r in rows if r["solver"] == "gtsam-lm")["final_error"]
+    gdsw = next(r for r in rows if r["solver"].endswith("gdsw"))
+    assert gdsw["final_error"] <= ref * (1 + 1e-6)
+
+
+def test_demo_writes_plots(tmp_path):
+    proc = cli("demo", "--loops", 4, "--points-per-side", 4, "--out", tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "gtsam-lm" in proc.stdout and "schwarz-gn-gdsw" in proc.stdout
+    for name in ("demo_trajectory.png", "demo_convergence.png"):
+        assert (tmp_path / name).stat().st_size > 1000
+        assert name in proc.stdout
+
+
+@pytest.mark.datasets
+@pytest.mark.parametrize("pre", ["gdsw", "gdsw-norot", "rgdsw", "one-level", "block-jacobi", "direct"])
+def test_solve_3d_file_every_preconditioner(pre):
+    path = dataset("smallGrid3D.g2o")
+    proc = cli("solve", path, "--json", "--preconditioner", pre, "--subdomains", 4)
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout)
+    assert report["dimension"] == 3 and report["poses"] == 125
+    loaded = load_graph(path)
+    ref = gtsam.LevenbergMarquardtOptimizer(loaded.graph, loaded.initial, gtsam.LevenbergMarquardtParams()).optimize()
+    assert report["final_error"] <= loaded.graph.error(ref) * (1 + 1e-6)

@@ -1,0 +1,104 @@
+"""Edge-based subdomains, overlap along odometry, interface poses (paper Sec. 3.1)."""
+
+import numpy as np
+import pytest
+
+from gtsam_schwarz import (Decomposition, GraphStructure, KeyMap, export_linear_system, find_interface,
+                           segment_partition, segments, square_loops)
+
+
+def model_structure(loops, pps):
+    prob = square_loops(loops, pps, sigma=0.01, seed=0)
+    km = KeyMap.from_graph(prob.graph, prob.initial)
+    H = export_linear_system(prob.graph.linearize(prob.initial), km).H
+    return GraphStructure.from_matrix(H, km.offsets), H
+
+
+def test_structure_finds_odometry_and_loop_closures():
+    st, _ = model_structure(3, 2)
+    n = 4 * 2 * 3 + 1
+    assert st.n_vertices == n and st.n_dofs == 3 * n
+    odo = st.edges[st.odometry]
+    assert odo.tolist() == [[t, t + 1] for t in range(n - 1)]
+    assert st.edges[~st.odometry].tolist() == [[0, 8], [8, 16], [16, 24]]
+
+
+def test_one_subdomain_per_loop():
+    """With N = loops, subdomain k holds exactly loop k's odometry edges and its loop closure."""
+    L, P = 4, 3
+    st, _ = model_structure(L, P)
+    part = segment_partition(st, L)
+    lp = 4 * P
+    for (u, v), k in zip(st.edges, part):
+        assert k == (v - 1) // lp
+    dec = Decomposition.build(st, part, overlap=0)
+    for k, V in enumerate(dec.vertex_sets(overlapping=False)):
+        assert V.tolist() == list(range(k * lp, (k + 1) * lp + 1))
+
+
+def test_overlap_grows_along_odometry_only():
+    L, P = 4, 3
+    lp = 4 * P
+    st, _ = model_structure(L, P)
+    for delta in (1, 2, 3):
+        dec = segments(st, L, overlap=delta)
+        for k, V in enumerate(dec.vertex_sets()):
+            lo, hi = max(k * lp - delta, 0), min((k + 1) * lp + delta, L * lp)
+            assert V.tolist() == list(range(lo, hi + 1)), (delta, k)
+    # growing along all edges also follows loop closures: pose 12 ∈ V_1 reaches pose 0 through
+    # the closure (0, 12) of loop 0, which odometry-only growth never does
+    dec_all = segments(st, L, overlap=1, grow_along="all")
+    assert 0 in dec_all.vertex_sets()[1].tolist()
+    assert 0 not in segments(st, L, overlap=1).vertex_sets()[1].tolist()
+
+
+def test_index_sets_are_dofs_of_vertex_sets():
+    st, _ = model_structure(3, 2)
+    dec = segments(st, 3, overlap=1)
+    sets = dec.index_sets()
+    for i, V in enumerate(dec.vertex_sets()):
+        assert sets.get(i).tolist() == (3 * V[:, None] + np.arange(3)).ravel().tolist()
+    covered = np.zeros(st.n_dofs, dtype=bool)
+    covered[sets.indices] = True
+    assert covered.all()
+
+
+def test_loop_closure_couplings_are_kept_in_local_matrices():
+    """A_i = R_i A R_iᵀ keeps the loop-closure block between 4P(k−1) and 4Pk (paper Fig. sparsity)."""
+    from gtsam_schwarz.solvers import block_diagonal
+    L, P = 3, 2
+    st, H = model_structure(L, P)
+    dec = segments(st, L, overlap=1)
+    sets = dec.index_sets()
+    B = block_diagonal(H, sets).toarray()
+    for k in range(L):
+        I = sets.get(k)
+        a, b = 3 * (k * 4 * P), 3 * ((k + 1) * 4 * P)
+        ia, ib = np.searchsorted(I, a), np.searchsorted(I, b)
+        local = B[sets.ptr[k]:sets.ptr[k + 1], sets.ptr[k]:sets.ptr[k + 1]]
+        assert np.allclose(local[ia:ia + 3, ib:ib + 3], H[a:a + 3, b:b + 3].toarray())
+        assert np.abs(local[ia:ia + 3, ib:ib + 3]).max() > 0
+
+
+def test_interface_is_the_shared_start_poses():
+    L, P = 5, 2
+    st, _ = model_structure(L, P)
+    itf = find_interface(segments(st, L))
+    assert itf.vertices.tolist() == [k * 4 * P for k in range(1, L)]
+    assert itf.subdomains.toarray().sum(axis=1).tolist() == [2] * (L - 1)
+    assert (itf.interior_subdomain[itf.vertices] == -1).all()
+
+
+def test_segments_clamp_and_single_pose():
+    st, _ = model_structure(1, 1)  # 5 poses, 4 odometry edges, 1 closure
+    assert segments(st, 100).n_subdomains == 4
+    single = GraphStructure(offsets=np.array([0, 3]), edges=np.zeros((0, 2), dtype=np.int64),
+                            odometry=np.zeros(0, dtype=bool))
+    dec = segments(single, 3)
+    assert dec.n_subdomains == 1 and dec.index_sets().get(0).tolist() == [0, 1, 2]
+
+
+def test_negative_overlap_is_refused():
+    st, _ = model_structure(1, 1)
+    with pytest.raises(ValueError, match="overlap"):
+        segments(st, 2, overlap=-1)

@@ -1,0 +1,159 @@
+"""Symbolic reuse across nonlinear iterations: every cached shortcut equals the fresh computation."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from gtsam_schwarz import (GraphStructure, KeyMap, SchwarzOptimizer, SchwarzParams, export_linear_system,
+                           find_interface, make_preconditioner, square_loops)
+from gtsam_schwarz.coarse import HarmonicExtension, gdsw_coarse_space
+from gtsam_schwarz.dd import auto_partition, decompose, interface_count, segment_partition
+from gtsam_schwarz.io import load_graph
+from gtsam_schwarz.linearization import HessianPattern, LinearSystem
+from gtsam_schwarz.solvers import (SPARSE_BACKEND, BlockDiagonalSolver, Gather, SingularLocalMatrixError,
+                                         SparseCholesky, block_diagonal)
+
+from conftest import dataset
+
+
+def _system(prob, values):
+    km = KeyMap.from_graph(prob.graph, prob.initial)
+    return km, export_linear_system(prob.graph.linearize(values), km)
+
+
+@pytest.fixture(scope="module")
+def two_points():
+    """The model problem linearized at two different points (same graph, so same block pattern)."""
+    prob = square_loops(6, 4, sigma=0.05, seed=3)
+    km, first = _system(prob, prob.initial)
+    opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(method="gn", max_iterations=1))
+    opt.optimize()
+    _, second = _system(prob, opt.values())
+    return km, first.H, second.H
+
+
+def test_hessian_pattern_keeps_one_pattern_and_the_numbers(two_points):
+    km, H1, H2 = two_points
+    pattern = HessianPattern(H1, km.offsets)
+    F1, F2 = pattern.fit(H1), pattern.fit(H2)
+    assert np.array_equal(F1.indices, F2.indices) and np.array_equal(F1.indptr, F2.indptr)
+    assert abs(F1 - H1).max() == 0 and abs(F2 - H2).max() == 0
+    assert pattern.fit(H2) is not None  # cached positions, same answer
+    assert abs(pattern.fit(H2) - H2).max() == 0
+    D = LinearSystem(F2, np.zeros(F2.shape[0]), diagonal=pattern.diagonal).damped(np.full(F2.shape[0], 0.5))
+    assert np.array_equal(D.indices, F2.indices)
+    assert abs(D - (H2 + 0.5 * sp.eye(H2.shape[0]))).max() < 1e-12
+    # an entry outside every coupled block does not fit
+    n = H1.shape[0]
+    outside = sp.csr_matrix(([1.0, 1.0], ([0, n - 1], [n - 1, 0])), shape=(n, n))
+    assert pattern.fit((H1 + outside).tocsr()) is None
+
+
+def test_gather_follows_new_numbers_and_new_patterns(two_points):
+    km, H1, H2 = two_points
+    rows = np.arange(0, H1.shape[0], 2)
+    g = Gather(lambda M: M[rows][:, rows])
+    for H in (H1, H2, H1):
+        assert abs(g(H) - sp.csr_matrix(H)[rows][:, rows]).max() == 0
+
+
+@pytest.mark.parametrize("backend", ["superlu"] + (["cholmod"] if SPARSE_BACKEND == "cholmod" else []))
+def test_sparse_cholesky_refactor_matches_direct_solve(two_points, backend):
+    _, H1, H2 = two_points
+    f = SparseCholesky(H1, "H", backend=backend)
+    b = np.arange(H1.shape[0], dtype=float)
+    assert np.allclose(f.solve(b), spla.spsolve(H1.tocsc(), b), rtol=1e-8)
+    f.refactor(H2)
+    assert np.allclose(f.solve(b), spla.spsolve(H2.tocsc(), b), rtol=1e-8)
+    singular = sp.csr_matrix(np.diag([1.0, 0.0, 1.0]))
+    with pytest.raises(SingularLocalMatrixError):
+        SparseCholesky(singular, "a singular matrix", backend=backend)
+
+
+def test_block_diagonal_solver_update_equals_a_fresh_one(two_points):
+    km, H1, H2 = two_points
+    dec = decompose(GraphStructure.from_matrix(H1, km.offsets), 3, "segments", 1)
+    sets = dec.index_sets()
+    solver = BlockDiagonalSolver(sets, H1)
+    solver.update(H2)
+    fresh = BlockDiagonalSolver(sets, H2)
+    x = np.linspace(-1, 1, H1.shape[0])
+    assert np.allclose(solver.matvec(x), fresh.matvec(x), rtol=1e-10)
+    B = block_diagonal(H2, sets).toarray()
+    xl = x[sets.indices]
+    assert np.allclose(solver.matvec(x), np.bincount(sets.indices, np.linalg.solve(B, xl), minlength=len(x)))
+
+
+def test_harmonic_extension_reuse_and_interface_only_coarse_matrix(two_points):
+    """A_0 from the interface rows equals Φᵀ A Φ; a reused plan equals a fresh extension; A Φ = 0 inside."""
+    km, H1, H2 = two_points
+    dec = decompose(GraphStructure.from_matrix(H1, km.offsets), 3, "segments", 1)
+    iface = find_interface(dec)
+    ext = HarmonicExtension(dec, iface)
+    mask = km.translation_mask()
+    gdsw_coarse_space(H1, dec, iface, "gdsw", None, True, mask, ext)  # builds the plan
+    reused = gdsw_coarse_space(H2, dec, iface, "gdsw", None, True, mask, ext)
+    fresh = gdsw_coarse_space(H2, dec, iface, "gdsw", None, True, mask)
+    assert abs(reused.Phi - fresh.Phi).max() < 1e-12
+    full = (reused.Phi.T @ H2 @ reused.Phi).toarray()
+    assert np.allclose(reused.A0.toarray(), full, rtol=1e-9, atol=1e-9 * np.abs(full).max())
+    APhi = (H2 @ reused.Phi).toarray()
+    assert np.abs(APhi[ext.interior]).max() < 1e-8 * np.abs(APhi).max()
+
+
+def test_two_level_update_equals_a_fresh_preconditioner(two_points):
+    km, H1, H2 = two_points
+    dec = decompose(GraphStructure.from_matrix(H1, km.offsets), 3, "segments", 1)
+    M = make_preconditioner("gdsw", H1, dec, km.translation_mask())
+    M.update(H2)
+    fresh = make_preconditioner("gdsw", H2, dec, km.translation_mask())
+    x = np.cos(np.arange(H1.shape[0]))
+    assert np.allclose(M.matvec(x), fresh.matvec(x), rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.datasets
+def test_auto_partition_picks_the_smaller_interface():
+    """Model problem: segments (2 interface poses per loop); M3500: METIS cuts far fewer poses."""
+    prob = square_loops(8, 4)
+    km, system = _system(prob, prob.initial)
+    s = GraphStructure.from_matrix(system.H, km.offsets)
+    assert np.array_equal(auto_partition(s, 8), segment_partition(s, 8))
+    g = load_graph(dataset("input_M3500_g2o.g2o"))
+    km = KeyMap.from_graph(g.graph, g.initial)
+    s = GraphStructure.from_matrix(export_linear_system(g.graph.linearize(g.initial), km).H, km.offsets)
+    seg, auto = segment_partition(s, 7), auto_partition(s, 7)
+    assert interface_count(s, auto) < interface_count(s, seg) / 2
+
+
+def test_lagged_preconditioner_is_rebuilt_when_the_poses_move_and_reused_for_rejected_steps():
+    prob = square_loops(8, 8, sigma=0.05, seed=1)
+    opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(method="lm", subdomains=4, lag_distance=1.0))
+    opt.optimize()
+    h = opt.history
+    assert h[0]["preconditioner_rebuilt"]
+    assert any(r["preconditioner_lagged"] for r in h), "the lag never applied"
+    moved = 0.0
+    for prev, cur in zip(h, h[1:]):
+        moved = (0.0 if prev["preconditioner_rebuilt"] else moved) + (prev["step_max"] if prev["accepted"] else 0.0)
+        if moved >= 1.0:
+            assert not cur["preconditioner_lagged"]
+        assert cur["cg_converged"]
+    off = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(method="lm", subdomains=4,
+                                                                   lagged_preconditioner=False))
+    off.optimize()
+    assert all(r["preconditioner_rebuilt"] for r in off.history)
+    assert abs(opt.error() - off.error()) <= 1e-6 * off.error()
+
+
+def test_symbolic_reuse_gives_the_same_iterates_as_rebuilding_from_scratch():
+    prob = square_loops(8, 8, sigma=0.05, seed=2)
+    runs = []
+    for reuse in (True, False):
+        opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(
+            method="lm", subdomains=4, reuse_symbolic=reuse, lagged_preconditioner=False))
+        opt.optimize()
+        runs.append(opt)
+    a, b = runs
+    assert [h["cg_iterations"] for h in a.history] == [h["cg_iterations"] for h in b.history]
+    assert abs(a.error() - b.error()) <= 1e-9 * b.error()
