@@ -13,9 +13,10 @@ import sys
 
 import pytest
 
+from conftest import DATASETS
 from gtsam_schwarz.apps.bench import PHASES, SOLVERS, run_child
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 STACK = resource.getrlimit(resource.RLIMIT_STACK)  # (soft, hard) that the bench's children inherit
 
 
@@ -24,7 +25,8 @@ def _limit(value):
 
 
 def bench(*args, timeout=300):
-    return subprocess.run([sys.executable, "-m", "gtsam_schwarz.apps.cli", "bench", "--size", "tiny", *map(str, args)],
+    return subprocess.run([sys.executable, "-m", "gtsam_schwarz.apps.cli", "bench", "--size", "tiny",
+                           "--datasets", str(DATASETS), *map(str, args)],
                           capture_output=True, text=True, cwd=ROOT, timeout=timeout)
 
 
@@ -37,6 +39,8 @@ def report():
     return json.loads(lines[0])
 
 
+@pytest.mark.datasets
+@pytest.mark.slow
 def test_every_run_is_ok_and_ours_matches_gtsam_lm(report):
     runs = report["runs"]
     assert [c["name"] for c in report["cases"]] == ["sq8x16", "smallGrid3D"]
@@ -49,6 +53,8 @@ def test_every_run_is_ok_and_ours_matches_gtsam_lm(report):
         assert ours["rel_error_diff"] <= 1e-6 and ours["same_error"] is True
 
 
+@pytest.mark.datasets
+@pytest.mark.slow
 def test_ratios_memory_and_stack_figures(report):
     for r in report["runs"]:
         assert math.isfinite(r["ratio_to_gtsam_lm"]) and r["ratio_to_gtsam_lm"] > 0
@@ -61,6 +67,8 @@ def test_ratios_memory_and_stack_figures(report):
         assert r["stack"]["bytes"] == _limit(expected)
 
 
+@pytest.mark.datasets
+@pytest.mark.slow
 def test_our_split_has_the_five_phases(report):
     for r in (r for r in report["runs"] if r["solver"] == "ours"):
         assert set(r["split"]) == set(PHASES) and set(r["split_per_iteration"]) == set(PHASES)
@@ -70,6 +78,8 @@ def test_our_split_has_the_five_phases(report):
         assert r["cg_mean"] > 0 and r["subdomains"] >= 1 and r["coarse_size"] >= 0
 
 
+@pytest.mark.datasets
+@pytest.mark.slow
 def test_report_records_machine_command_and_params(report):
     m = report["machine"]
     assert m["cpu_count"] >= 1 and m["gtsam"] and m["numpy"] and m["scipy"]

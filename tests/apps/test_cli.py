@@ -100,6 +100,7 @@ def test_malformed_file_names_the_line(tmp_path):
 
 
 @pytest.mark.datasets
+@pytest.mark.slow
 def test_compare_json_rows(tmp_path):
     proc = cli("compare", dataset("MIT.g2o"), "--json")
     assert proc.returncode == 0, proc.stderr

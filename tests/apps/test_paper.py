@@ -22,6 +22,7 @@ def quick(tmp_path_factory):
     return out, proc
 
 
+@pytest.mark.slow
 def test_stdout_is_one_json_object(quick):
     _, proc = quick
     decoder = json.JSONDecoder()
@@ -31,6 +32,7 @@ def test_stdout_is_one_json_object(quick):
     assert isinstance(data, dict) and {"bars1d", "model"} <= data.keys()
 
 
+@pytest.mark.slow
 def test_bar_chain_cg_counts_equal_the_paper(quick):
     data = json.loads(quick[1].stdout)
     paper = {int(r[0]): r for r in PAPER_BARS1D}
@@ -46,6 +48,7 @@ def test_bar_chain_cg_counts_equal_the_paper(quick):
         assert row["one_level"]["lambda_min"] == pytest.approx(p[3], rel=0.01)
 
 
+@pytest.mark.slow
 def test_model_gdsw_bounded_and_below_one_level(quick):
     model = json.loads(quick[1].stdout)["model"]
     for r in model:
@@ -64,6 +67,7 @@ def test_model_gdsw_bounded_and_below_one_level(quick):
     assert ov1[(largest, "gdsw")] < 1.6 * ov1[(4, "gdsw")]
 
 
+@pytest.mark.slow
 def test_report_and_figures_written(quick):
     out, proc = quick
     files = json.loads(proc.stdout)["files"]
