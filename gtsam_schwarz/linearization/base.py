@@ -49,6 +49,7 @@ class Linearizer(Protocol):
     ``state`` is whatever the implementation keeps (opaque to the optimizer).
     """
 
+    keys: np.ndarray  # the variables' keys, sorted
     offsets: np.ndarray
 
     def state(self, values) -> Any:

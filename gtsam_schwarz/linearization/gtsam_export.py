@@ -167,7 +167,7 @@ class GtsamLinearizer:
     def __init__(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values):
         self.graph = graph
         self.keymap = KeyMap.from_graph(graph, values)
-        self.offsets = self.keymap.offsets
+        self.keys, self.offsets = self.keymap.keys, self.keymap.offsets
         self.pattern: HessianPattern | None = None
         self.seconds = {"linearize": 0.0, "export": 0.0}  # of the last linearize call
 

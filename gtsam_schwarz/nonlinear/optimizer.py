@@ -8,14 +8,18 @@ the step → the linearizer retracts and evaluates → the loop decides. What de
 from __future__ import annotations
 
 import time
+import warnings
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from ..dd.index_sets import vertex_dofs
 from ..linearization.base import Linearizer, LinearSystem
+from .gauge import free_components
 from .hooks import verbose_printer
 from .linear_solver import Forcing, LinearSolver, make_linear_solver
-from .params import LevenbergMarquardtParams, SchwarzParams, as_nonlinear, linear_solver_names
+from .params import (DampingParams, LevenbergMarquardtParams, LinearSolverParams, SchwarzParams, as_nonlinear,
+                     linear_solver_names)
 from .records import IterationRecord
 
 LINEAR_SOLVERS = linear_solver_names()
@@ -24,16 +28,19 @@ LINEAR_SOLVERS = linear_solver_names()
 class SchwarzOptimizer:
     """``SchwarzOptimizer(graph, initial, params).optimize()`` → ``gtsam.Values``, like GTSAM's.
 
-    ``params``: :class:`SchwarzParams` (flat), :class:`GaussNewtonParams` or
-    :class:`LevenbergMarquardtParams`. ``linearizer``: any :class:`Linearizer` (default: GTSAM's
-    linearization, which handles every factor). ``history`` holds one :class:`IterationRecord` per
-    linear solve.
+    ``params``: :class:`SchwarzParams` (flat; default Levenberg–Marquardt), :class:`GaussNewtonParams`,
+    :class:`LevenbergMarquardtParams`, or GTSAM's ``LevenbergMarquardtParams`` / ``GaussNewtonParams``
+    (with ``linear_solver=LinearSolverParams(...)`` for our settings beside them). ``linearizer``: any
+    :class:`Linearizer` (default: GTSAM's linearization, which handles every factor). ``history``
+    holds one :class:`IterationRecord` per linear solve. Silent unless ``verbose`` or a hook is set;
+    a run that stops without converging warns (``warnings.warn``) with the reason.
     """
 
-    def __init__(self, graph, initial, params=None, linearizer: Linearizer | None = None):
+    def __init__(self, graph, initial, params=None, linearizer: Linearizer | None = None,
+                 linear_solver: LinearSolverParams | None = None):
         self.graph = graph
         self.params = params if params is not None else SchwarzParams()
-        self.nonlinear_params = as_nonlinear(self.params)
+        self.nonlinear_params = as_nonlinear(self.params, linear_solver)
         if linearizer is None:
             from ..linearization.gtsam_export import GtsamLinearizer
             linearizer = GtsamLinearizer(graph, initial)
@@ -49,6 +56,8 @@ class SchwarzOptimizer:
         p = self.nonlinear_params
         self.method = "lm" if isinstance(p, LevenbergMarquardtParams) else "gn"
         self._lambda = p.lambda_initial if self.method == "lm" else 0.0
+        self.anchors: np.ndarray | None = None  # first vertex of each component without a prior
+        self._anchor_dofs = None
         self.linear_solver: LinearSolver = make_linear_solver(p.linear_solver, linearizer.offsets,
                                                               linearizer.translation_mask())
         self.forcing = Forcing(p.linear_solver)
@@ -66,8 +75,8 @@ class SchwarzOptimizer:
         """Nonlinear iterations (linearization points from which a step was tried)."""
         return len({h.iteration for h in self.history})
 
-    @property
     def lambda_(self) -> float:
+        """The current Levenberg–Marquardt damping λ (GTSAM's ``lambda_()``; 0 for Gauss–Newton)."""
         return self._lambda
 
     @property
@@ -85,6 +94,9 @@ class SchwarzOptimizer:
         system = self.linearizer.linearize(self._state)
         if not system.seconds:
             system.seconds = {"linearize": time.perf_counter() - t0, "export": 0.0}
+        if self.anchors is None:
+            self.anchors = free_components(system.H, self.linearizer.offsets, self.linearizer.geometry(self._state))
+            self._anchor_dofs = vertex_dofs(self.anchors, self.linearizer.offsets) if len(self.anchors) else None
         return system
 
     def _gradient_converged(self, gnorm: float) -> bool:
@@ -104,13 +116,15 @@ class SchwarzOptimizer:
     def _damped(self, system: LinearSystem, lam: float):
         """H + λD: D = I, or diag(H) clipped to [1e-6, 1e32] with ``diagonal_damping`` (GTSAM's)."""
         H = system.H
-        if lam == 0.0:
+        if lam == 0.0 and self._anchor_dofs is None:
             return H
-        if self.nonlinear_params.diagonal_damping:
-            d = np.clip(H.diagonal(), 1e-6, 1e32)
-        else:
-            d = np.ones(H.shape[0])
-        return system.damped(lam * d)
+        d = np.zeros(H.shape[0])
+        if lam != 0.0:
+            diagonal = getattr(self.nonlinear_params, "diagonal_damping", False)
+            d = lam * (np.clip(H.diagonal(), 1e-6, 1e32) if diagonal else np.ones(H.shape[0]))
+        if self._anchor_dofs is not None:  # gauge: the anchor's own diagonal once more (see gauge.py)
+            d[self._anchor_dofs] += H.diagonal()[self._anchor_dofs]
+        return system.damped(d)
 
     def _try_step(self, system: LinearSystem, gnorm: float, lam: float, iteration: int,
                   seconds: dict) -> tuple[IterationRecord, object]:
@@ -202,26 +216,28 @@ class SchwarzOptimizer:
         record.accepted = bool(np.isfinite(record.error) and record.error <= before)
         self._log(record)
         if not record.accepted:
-            self.converged = abs(record.error - before) <= max(p.absolute_error_tol, p.relative_error_tol * before)
-            self.stop_reason = "step increased the error: rejected"
-            return False
+            # never stop at a worse or unchanged point: fall back to damped steps (λ from LM's defaults)
+            self._lambda = DampingParams().lambda_initial
+            return self._levenberg_marquardt(system, gnorm, iteration, DampingParams(), {})
         self._accept(new_state, record)
         return not self._error_converged(before, record.cg_tolerance)
 
-    def _levenberg_marquardt(self, system: LinearSystem, gnorm: float, iteration: int) -> bool:
+    def _levenberg_marquardt(self, system: LinearSystem, gnorm: float, iteration: int,
+                             damping: DampingParams | None = None, seconds: dict | None = None) -> bool:
         p = self.nonlinear_params
+        d = damping or p
         before = self._error
-        seconds = system.seconds
+        seconds = system.seconds if seconds is None else seconds
         while True:
             record, new_state = self._try_step(system, gnorm, self._lambda, iteration, seconds)
             seconds = {}
             ok = (np.isfinite(record.error) and record.error < before
-                  and record.model_fidelity >= p.min_model_fidelity)
+                  and record.model_fidelity >= d.min_model_fidelity)
             record.accepted = bool(ok)
             self._log(record)
             if ok:
                 self._accept(new_state, record)
-                self._lambda = max(self._lambda / p.lambda_factor, p.lambda_lower_bound)
+                self._lambda = max(self._lambda / d.lambda_factor, d.lambda_lower_bound)
                 return not self._error_converged(before, record.cg_tolerance)
             if record.cg_tolerance <= p.linear_solver.cg_tol and record.predicted_decrease <= max(
                     p.absolute_error_tol, p.relative_error_tol * before):
@@ -232,21 +248,35 @@ class SchwarzOptimizer:
                                     f"error tolerance: converged")
                 return False
             self.forcing.exact_next = True  # retry the rejected step with an exact solve
-            self._lambda *= p.lambda_factor
-            if self._lambda > p.lambda_upper_bound:
+            self._lambda *= d.lambda_factor
+            if self._lambda > d.lambda_upper_bound:
                 self.converged = True
-                self.stop_reason = f"lambda {self._lambda:.1e} above {p.lambda_upper_bound:g}: no further decrease"
+                self.stop_reason = f"lambda {self._lambda:.1e} above {d.lambda_upper_bound:g}: no further decrease"
                 return False
 
     def optimize(self):
-        """Iterate until a stopping rule fires; returns the optimized ``gtsam.Values``."""
+        """Iterate until a stopping rule fires; returns the optimized ``gtsam.Values``.
+
+        A run that ends without converging (iteration cap, no acceptable step) warns with the reason."""
         p = self.nonlinear_params
         while self.iterations() < p.max_iterations:
             if not self.iterate():
                 break
         else:
             self.stop_reason = f"maximum of {p.max_iterations} iterations reached"
+        if not self.converged:
+            warnings.warn(f"SchwarzOptimizer did not converge: {self.stop_reason} "
+                          f"(error {self.initial_error:.6g} -> {self._error:.6g})", RuntimeWarning, stacklevel=2)
         return self.values()
+
+    def optimizeSafely(self):
+        """GTSAM's ``optimizeSafely``: ``optimize``, but on an exception return the best values so far."""
+        try:
+            return self.optimize()
+        except Exception as exc:  # noqa: BLE001 — GTSAM's contract: never raise, return what we have
+            self.stop_reason = f"stopped by {type(exc).__name__}: {exc}"
+            warnings.warn(f"SchwarzOptimizer.optimizeSafely: {self.stop_reason}", RuntimeWarning, stacklevel=2)
+            return self.values()
 
     def summary(self) -> dict:
         cg = [h.cg_iterations for h in self.history]
@@ -264,5 +294,12 @@ class SchwarzOptimizer:
             "cg_mean": float(np.mean(cg)) if cg else 0.0,
             "subdomains": self.decomposition.n_subdomains if self.decomposition else None,
             "coarse_size": self.history[-1].coarse_size if self.history else 0,
+            "anchored": [int(k) for k in self._anchor_keys()],
         }
+
+    def _anchor_keys(self):
+        """Keys of the poses anchored for gauge freedom (components without a prior)."""
+        if self.anchors is None or not len(self.anchors):
+            return []
+        return np.asarray(self.linearizer.keys)[self.anchors].tolist()
 

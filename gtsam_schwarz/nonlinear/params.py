@@ -140,7 +140,7 @@ class SchwarzParams(DampingParams, StoppingParams, LinearSolverParams):
     """All settings in one flat object (the documented API): ``method`` picks Gauss–Newton
     ("gn") or Levenberg–Marquardt ("lm"); λ fields only matter for "lm"."""
 
-    method: str = "gn"  # gn | lm
+    method: str = "lm"  # lm | gn (the same default as the command line)
 
     def __post_init__(self):
         _choice("method", self.method, METHODS)
@@ -163,13 +163,46 @@ class SchwarzParams(DampingParams, StoppingParams, LinearSolverParams):
         return LinearSolverParams(**{f.name: getattr(self, f.name) for f in fields(LinearSolverParams)})
 
 
-def as_nonlinear(params) -> GaussNewtonParams:
-    """GaussNewtonParams / LevenbergMarquardtParams for any accepted params object (None: defaults)."""
+def from_gtsam(params, linear_solver: LinearSolverParams | None = None) -> GaussNewtonParams:
+    """Our params from GTSAM's ``LevenbergMarquardtParams`` / ``GaussNewtonParams``: tolerances,
+    maximum iterations, λ settings, verbosity and ``iterationHook(iteration, errorBefore, errorAfter)``
+    carried over; the linear solve from ``linear_solver`` (GTSAM's linear solver type is ignored:
+    ours replaces it)."""
+    common = {"max_iterations": params.getMaxIterations(), "relative_error_tol": params.getRelativeErrorTol(),
+              "absolute_error_tol": params.getAbsoluteErrorTol(), "error_tol": params.getErrorTol(),
+              "verbose": str(params.getVerbosity()) not in ("SILENT", "Verbosity.SILENT"),
+              "linear_solver": linear_solver or LinearSolverParams()}
+    hook = getattr(params, "iterationHook", None)
+    if callable(hook):
+        common["iteration_hook"] = _gtsam_hook(hook)
+    if hasattr(params, "getlambdaInitial"):
+        return LevenbergMarquardtParams(
+            **common, lambda_initial=params.getlambdaInitial(), lambda_factor=params.getlambdaFactor(),
+            lambda_upper_bound=params.getlambdaUpperBound(), lambda_lower_bound=params.getlambdaLowerBound(),
+            diagonal_damping=params.getDiagonalDamping())
+    return GaussNewtonParams(**common)
+
+
+def _gtsam_hook(hook):
+    """GTSAM's iterationHook(iteration, errorBefore, errorAfter), called once per accepted step."""
+    def call(record):
+        if record.accepted:
+            hook(record.iteration, record.error_before, record.error)
+    return call
+
+
+def as_nonlinear(params, linear_solver: LinearSolverParams | None = None) -> GaussNewtonParams:
+    """GaussNewtonParams / LevenbergMarquardtParams for any accepted params object: ours (flat or
+    typed), GTSAM's, or None (defaults: Levenberg–Marquardt)."""
     if params is None:
-        return SchwarzParams().nonlinear()
+        params = SchwarzParams()
     if isinstance(params, SchwarzParams):
-        return params.nonlinear()
+        params = params.nonlinear()
     if isinstance(params, GaussNewtonParams):
+        if linear_solver is not None:
+            params.linear_solver = linear_solver
         return params
-    raise TypeError(f"params must be SchwarzParams, GaussNewtonParams or LevenbergMarquardtParams, "
+    if hasattr(params, "getMaxIterations") and hasattr(params, "getRelativeErrorTol"):
+        return from_gtsam(params, linear_solver)
+    raise TypeError(f"params must be SchwarzParams, GaussNewtonParams, LevenbergMarquardtParams or GTSAM's, "
                     f"got {type(params).__name__}")

@@ -65,7 +65,7 @@ def test_chain_without_loop_closures():
         f = prob.graph.at(i)
         if len(f.keys()) == 1 or f.keys()[1] == f.keys()[0] + 1:
             graph.add(f)
-    opt = SchwarzOptimizer(graph, prob.initial, SchwarzParams(subdomains=3))
+    opt = SchwarzOptimizer(graph, prob.initial, SchwarzParams(method="gn", subdomains=3))
     opt.optimize()
     assert opt.error() < 1e-10  # dead reckoning is already optimal for a tree
 
