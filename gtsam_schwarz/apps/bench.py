@@ -26,10 +26,15 @@ import tempfile
 import time
 from dataclasses import dataclass
 
+from . import peers
 from .report import markdown_table
 
-SOLVERS = ("ours", "gtsam-lm", "gtsam-lm-pcg", "gtsam-lm-subgraph")
-SPEEDUP_OVER_OURS = ("gtsam-lm-pcg", "gtsam-lm-subgraph")  # rows that show "GTSAM solver / ours"
+CORE_SOLVERS = ("ours", "gtsam-lm", "gtsam-lm-pcg", "gtsam-lm-subgraph")
+PEERS = tuple(peers.PEER_SOLVERS)  # g2o-gn, g2o-lm: need the [peers] extra (g2opy)
+KNOWN_SOLVERS = CORE_SOLVERS + PEERS  # what --solvers accepts; a peer that is not installed is a row "not installed"
+SOLVERS = CORE_SOLVERS + (PEERS if peers.available() else ())  # the default: the peers when installed
+SPEEDUP_OVER_OURS = ("gtsam-lm-pcg", "gtsam-lm-subgraph", *PEERS)  # rows that show "that solver / ours"
+NOT_INSTALLED = "not installed"
 SIZES = ("tiny", "small", "large")
 PHASES = ("linearize", "export", "setup", "cg", "update")
 BASE_PARAMS = {"method": "lm", "preconditioner": "gdsw"}
@@ -142,15 +147,33 @@ def _solve_gtsam(graph, initial, name: str) -> dict:
     return {k: r[k] for k in ("iterations", "seconds", "values", "failed") if k in r}
 
 
+def _solve_peer(graph, initial, name: str) -> dict:
+    """g2o's GN or LM on the same graph (built from it, not timed); estimates back in gtsam Values."""
+    r = peers.solve_g2o(graph, initial, peers.PEER_SOLVERS[name])
+    return {k: r[k] for k in ("iterations", "seconds", "values", "failed", "init_seconds", "g2o_chi2",
+                              "g2o_initial_chi2", "converged", "stop_reason") if k in r}
+
+
 def solve(case: Case, solver: str, overrides: dict, datasets: pathlib.Path) -> dict:
     """Load (not timed), then time the optimizer's construction + optimize(); memory and stack figures.
 
     ``peak_mib`` is the whole child's peak RSS; ``solve_peak_mib`` the peak since loading ended
-    (the same figure where the peak cannot be reset)."""
+    (the same figure where the peak cannot be reset). A peer (g2o) that cannot be imported gives
+    ``{"not_installed": why}`` before anything is loaded."""
+    if solver in PEERS:
+        try:
+            peers.import_g2o()
+        except peers.PeerNotInstalled as exc:
+            return {"not_installed": str(exc), "stack": stack_limit()}
     graph, initial, poses, dimension = load_case(case, datasets)
     loaded, load_peak = _memory_mib()
     reset = _reset_peak()
-    r = _solve_ours(graph, initial, overrides) if solver == "ours" else _solve_gtsam(graph, initial, solver)
+    if solver == "ours":
+        r = _solve_ours(graph, initial, overrides)
+    elif solver in PEERS:
+        r = _solve_peer(graph, initial, solver)
+    else:
+        r = _solve_gtsam(graph, initial, solver)
     solve_peak = _memory_mib()[1]
     values = r.pop("values")
     r["final_error"] = float(graph.error(values)) if values is not None else float("nan")
@@ -165,7 +188,7 @@ def worker_main(argv=None) -> int:
     tune_allocator()
     ap = argparse.ArgumentParser(prog="python -m gtsam_schwarz.apps.bench", description="one benchmark run (a child)")
     ap.add_argument("--case", required=True, choices=sorted(ALL_CASES))
-    ap.add_argument("--solver", required=True, choices=SOLVERS)
+    ap.add_argument("--solver", required=True, choices=KNOWN_SOLVERS)
     ap.add_argument("--params", default="{}", help="JSON object of SchwarzParams overrides (ours)")
     ap.add_argument("--datasets", type=pathlib.Path, default=None)
     ap.add_argument("--result", required=True, help="file to write the JSON result to")
@@ -243,7 +266,10 @@ def run_solver(case: Case, solver: str, overrides: dict, datasets: pathlib.Path,
         row = json.loads(result.read_text()) if child["status"] == "ok" and result.exists() else {}
     if child["status"] == "ok" and not row:
         child["status"] = "error: the child wrote no result"
-    status = f"failed: {row['failed']}" if row.get("failed") else child["status"]
+    if row.get("not_installed"):
+        status = NOT_INSTALLED
+    else:
+        status = f"failed: {row['failed']}" if row.get("failed") else child["status"]
     keep = {"stderr": child["stderr"]} if status != "ok" else {}
     return {"case": case.name, "solver": solver, **row, "status": status, "child_seconds": child["child_seconds"],
             **keep}
@@ -260,7 +286,7 @@ def _ratio(a, b) -> float:
 
 
 def add_comparisons(rows: list[dict]) -> None:
-    """Per case: relative error difference and time ratio to gtsam-lm; GTSAM solver / ours speedup."""
+    """Per case: relative error difference and time ratio to gtsam-lm; other solver / ours speedup."""
     for case in dict.fromkeys(r["case"] for r in rows):
         group = [r for r in rows if r["case"] == case]
         ok = {r["solver"]: r for r in group if r["status"] == "ok"}
@@ -328,13 +354,29 @@ def _header(report: dict) -> list[str]:
             "SubgraphSolver; the iterative ones with CG tolerance 1e-8 relative and at most 20000 CG "
             "iterations, as ours: GTSAM's default 1e-3 stops LM early at a worse error); all stop on "
             "relative/absolute error decrease 1e-5 or 100 iterations",
-            f"- every run in its own child process, timeout {report['timeout']:g} s; GTSAM's children under "
-            "`ulimit -s unlimited`, ours with the default stack (column *stack*)", ""]
+            *_peer_header(report),
+            f"- every run in its own child process, timeout {report['timeout']:g} s; GTSAM's and g2o's children "
+            "under `ulimit -s unlimited`, ours with the default stack (column *stack*)", ""]
+
+
+def _peer_header(report: dict) -> list[str]:
+    """The g2o line of the header, when a g2o row was asked for."""
+    if not any(s in PEERS for s in report.get("solvers", ())):
+        return []
+    version = report["machine"].get("g2opy")
+    return [f"- g2o ({'g2opy ' + version if version else 'g2opy not installed'}): `SparseOptimizer`, "
+            f"`BlockSolverSE2/SE3` + {peers.LINEAR_SOLVER}, Gauss–Newton (`g2o-gn`) or Levenberg–Marquardt "
+            "(`g2o-lm`), built from the same gtsam graph and initial values (not timed); the prior's pose "
+            "is a fixed vertex; Pose3 information converted to g2o's (t, q_vec) error, Ω_g2o = MᵀΩM; stops "
+            f"on relative chi2 decrease < {peers.RELATIVE_TOL:g} (g2o's `SparseOptimizerTerminateAction`) "
+            f"or {peers.MAX_ITERATIONS} iterations; timed: `initialize_optimization()` + `optimize()`; "
+            "final error: our `graph.error` at g2o's estimates"]
 
 
 LEGEND = ("*rel. diff vs LM*: |e − e_LM| / e_LM of the final error, ✓ when ≤ 1e-6; *seconds*: optimizer "
-          "construction + optimize(), problem loading excluded; *÷ GTSAM LM*: seconds / GTSAM LM's seconds (for "
-          "ours: the key figure ours / GTSAM-LM); *GTSAM ÷ ours*: that GTSAM solver's seconds / ours; *peak MiB*: "
+          "construction + optimize(), problem loading (and building g2o's graph) excluded; *÷ GTSAM LM*: seconds / "
+          "GTSAM LM's seconds (for ours: the key figure ours / GTSAM-LM); *÷ ours*: that solver's seconds / ours "
+          "(GTSAM's iterative solvers and g2o; above 1: ours is faster); *peak MiB*: "
           "the child's peak RSS; *Δ MiB*: the peak RSS during the solve minus the RSS right after loading the "
           "problem (the solver's own memory); *stack*: the "
           "child's stack limit.")
@@ -344,7 +386,7 @@ def markdown(report: dict) -> str:
     """The header, the main table (one group of rows per case) and our time split."""
     rows, poses = report["runs"], {c["name"]: c["poses"] for c in report["cases"]}
     head = ["case", "poses", "solver", "status", "final error", "rel. diff vs LM", "its",
-            "seconds", "÷ GTSAM LM", "GTSAM ÷ ours", "peak MiB", "Δ MiB", "stack"]
+            "seconds", "÷ GTSAM LM", "÷ ours", "peak MiB", "Δ MiB", "stack"]
     out = _header(report) + _table(head, [_main_row(r, poses[r["case"]]) for r in rows]) + ["", LEGEND]
     ours = [r for r in rows if r["solver"] == "ours" and r["status"] == "ok"]
     if ours:
@@ -376,7 +418,7 @@ def machine() -> dict:
             "memory_gib": round(int(mem[0]) / 2**20, 1) if mem and mem[0].isdigit() else None,
             "platform": platform.platform(), "python": platform.python_version(), "gtsam": _version("gtsam"),
             "numpy": _version("numpy"), "scipy": _version("scipy"), "gtsam_schwarz": _version("gtsam-schwarz"),
-            "sparse_backend": _sparse_backend()}
+            "sparse_backend": _sparse_backend(), "g2opy": peers.g2o_version()}
 
 
 def _sparse_backend() -> str:
@@ -493,7 +535,8 @@ def run_bench(args) -> int:
 
     valid = [c.name for c in CASES[args.size]]
     cases = [ALL_CASES[n] for n in _select("cases", args.cases, valid, f" for --size {args.size}")]
-    solvers = _select("solvers", args.solvers, list(SOLVERS))
+    solvers = (_select("solvers", args.solvers, list(KNOWN_SOLVERS)) if args.solvers is not None
+               else list(SOLVERS))
     overrides = parse_params(args.param)
     datasets = pathlib.Path(args.datasets) if args.datasets else default_datasets_dir()
     _check_inputs(cases, datasets, args.out)
@@ -525,7 +568,8 @@ def add_bench(sub) -> None:
                    help="tiny: a few seconds; small: model problems, M3500, city10000, sphere2500; "
                         "large: model problems with 262k and 1M poses (default small)")
     p.add_argument("--cases", help="comma list of case names of the size (default: all)")
-    p.add_argument("--solvers", help=f"comma list from {','.join(SOLVERS)} (default: all)")
+    p.add_argument("--solvers", help=f"comma list from {','.join(KNOWN_SOLVERS)} (default: all; "
+                                      f"{','.join(PEERS)} only when g2opy is installed: the [peers] extra)")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="a SchwarzParams override for ours (repeatable), e.g. --param subdomain_size=1000")
     p.add_argument("--timeout", type=positive_float, default=600.0, metavar="SECONDS",
