@@ -17,7 +17,8 @@ from ..dd.partition import default_subdomains
 from ..dd.structure import GraphStructure
 from ..krylov import pcg
 from ..schwarz import create_preconditioner
-from ..solvers import SparseCholesky, SparsityPattern
+from ..dd.index_sets import IndexSets
+from ..solvers import SparseCholesky, SparsityPattern, block_diagonal, cholesky_cost, vertex_pattern
 from .params import LinearSolverParams
 from .records import SolveResult
 
@@ -28,6 +29,8 @@ class LinearSolver:
     """Solves H x = rhs for successive matrices of one graph (same pattern, new numbers)."""
 
     decomposition = None
+    choice = ""  # the solver that runs (for "auto": the one it chose)
+    reason = ""  # why (for "auto": the predicted costs)
 
     def solve(self, H: sp.csr_matrix, rhs: np.ndarray, tol: float, geometry: Geometry) -> SolveResult:
         raise NotImplementedError
@@ -38,6 +41,8 @@ class LinearSolver:
 
 class DirectSolver(LinearSolver):
     """Sparse Cholesky of H (CHOLMOD with one symbolic analysis, or SuperLU): the reference."""
+
+    choice = "direct"
 
     def __init__(self):
         self._pattern = self._factor = None
@@ -63,6 +68,7 @@ class PreconditionedCG(LinearSolver):
 
     def __init__(self, params: LinearSolverParams, offsets: np.ndarray, translation_mask: np.ndarray):
         self.params = params
+        self.choice = params.preconditioner
         self.offsets = np.asarray(offsets, dtype=np.int64)
         self.translation_mask = translation_mask
         self.operator = None
@@ -139,8 +145,92 @@ class PreconditionedCG(LinearSolver):
                            coarse_size=M.coarse_size, rebuilt=self._rebuilt, lagged=lagged)
 
 
+class CostModel:
+    """Seconds per linear solve, predicted from the symbolic analysis (``solvers.cost``).
+
+    Calibrated on this project's 2-core machine (CHOLMOD, one BLAS thread) from the factor, solve and
+    SpMV times of M3500, city10000, sphere2500, torus3D and the model problems
+    (docs/performance.md, "automatic linear solver"): a numeric factorization costs
+    ``FLOP``·flops + ``ENTRY``·nnz(L), a triangular solve pair ``SOLVE``·nnz(L), an SpMV
+    ``SPMV``·nnz(H). Schwarz: the subdomain factorization twice (overlapping blocks and interiors),
+    harmonic extension with ``COARSE_COLUMNS`` right-hand sides, ``CG_ITERATIONS`` iterations.
+    """
+
+    FLOP = 3e-10
+    ENTRY = 2e-8
+    SOLVE = 2e-9
+    SPMV = 3e-9
+    CG_ITERATIONS = 30
+    COARSE_COLUMNS = 20
+    SCHWARZ_OVERHEAD = 6.0  # gathers, interface values, Φ and A₀ assembly, Python: measured 2–10× the counted work
+
+    def direct(self, cost) -> float:
+        return self.FLOP * cost.flops + (self.ENTRY + self.SOLVE) * cost.nnz_L
+
+    def schwarz(self, local, nnz_H: int) -> float:
+        setup = 2 * (self.FLOP * local.flops + self.ENTRY * local.nnz_L) + \
+            self.COARSE_COLUMNS * self.SOLVE * local.nnz_L
+        cg = self.CG_ITERATIONS * (self.SPMV * nnz_H + self.SOLVE * local.nnz_L)
+        return self.SCHWARZ_OVERHEAD * (setup + cg)
+
+
+class AutoSolver(LinearSolver):
+    """Direct factorization or Schwarz-preconditioned CG, chosen per graph on the first solve by
+    :class:`CostModel` from CHOLMOD-style symbolic analyses of H and of the subdomain blocks."""
+
+    def __init__(self, params: LinearSolverParams, offsets: np.ndarray, translation_mask: np.ndarray,
+                 schwarz: str = "gdsw"):
+        self.params, self.offsets, self.translation_mask, self.schwarz_name = params, offsets, translation_mask, schwarz
+        self.chosen: LinearSolver | None = None
+        self.choice = ""
+        self.reason = ""
+        self.model = CostModel()
+
+    @property
+    def decomposition(self):
+        return self.chosen.decomposition if self.chosen is not None else None
+
+    def choose(self, H) -> LinearSolver:
+        """Predict both costs and keep the cheaper solver (its name in ``choice``, why in ``reason``)."""
+        direct = cholesky_cost(H, self.offsets)
+        params = LinearSolverParams(**{**vars(self.params), "preconditioner": self.schwarz_name})
+        cg = PreconditionedCG(params, self.offsets, self.translation_mask)
+        dec = cg._decompose(H)
+        S = sp.csc_matrix(dec.overlapping)
+        S.sort_indices()
+        sets = IndexSets(indices=S.indices.astype(np.int64), ptr=S.indptr.astype(np.int64), n=S.shape[0])
+        blocks = block_diagonal(vertex_pattern(H, self.offsets), sets)
+        dims = np.diff(self.offsets)[sets.indices]
+        local = cholesky_cost(blocks, np.r_[0, np.cumsum(dims)])
+        t_direct, t_schwarz = self.model.direct(direct), self.model.schwarz(local, H.nnz)
+        facts = (f"nnz(L) {direct.nnz_L:.3g} ({direct.fill:.1f}x nnz(H)), {direct.flops:.3g} flops: "
+                 f"direct {t_direct:.3g} s vs {self.schwarz_name} {t_schwarz:.3g} s per solve (predicted)")
+        if t_direct <= t_schwarz:
+            self.choice, self.chosen = "direct", DirectSolver()
+        else:
+            self.choice, self.chosen = self.schwarz_name, cg
+        self.reason = facts
+        return self.chosen
+
+    def solve(self, H, rhs, tol, geometry):
+        t0 = time.perf_counter()
+        if self.chosen is None:
+            self.choose(H)  # the analysis counts as setup of the first solve
+        choosing = time.perf_counter() - t0
+        result = self.chosen.solve(H, rhs, tol, geometry)
+        result.setup_seconds += choosing
+        return result
+
+    def moved(self, step_max: float) -> None:
+        if self.chosen is not None:
+            self.chosen.moved(step_max)
+
+
 def make_linear_solver(params: LinearSolverParams, offsets: np.ndarray, translation_mask: np.ndarray) -> LinearSolver:
-    """"direct" → :class:`DirectSolver`; any registered preconditioner → :class:`PreconditionedCG`."""
+    """"auto" → :class:`AutoSolver`; "direct" → :class:`DirectSolver`; any registered preconditioner →
+    :class:`PreconditionedCG`."""
+    if params.preconditioner == "auto":
+        return AutoSolver(params, offsets, translation_mask)
     if params.preconditioner == "direct":
         return DirectSolver()
     return PreconditionedCG(params, offsets, translation_mask)

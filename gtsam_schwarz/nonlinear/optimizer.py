@@ -295,7 +295,13 @@ class SchwarzOptimizer:
             "subdomains": self.decomposition.n_subdomains if self.decomposition else None,
             "coarse_size": self.history[-1].coarse_size if self.history else 0,
             "anchored": [int(k) for k in self._anchor_keys()],
+            "linear_solver": self.linear_solver_choice(),
         }
+
+    def linear_solver_choice(self) -> dict:
+        """Which linear solver ran and why (the automatic choice records its prediction)."""
+        return {"requested": self.nonlinear_params.linear_solver.preconditioner,
+                "used": self.linear_solver.choice, "reason": self.linear_solver.reason}
 
     def _anchor_keys(self):
         """Keys of the poses anchored for gauge freedom (components without a prior)."""

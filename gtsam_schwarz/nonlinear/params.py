@@ -23,18 +23,19 @@ def _choice(name, value, allowed):
 
 
 def linear_solver_names() -> tuple[str, ...]:
-    """Every name ``preconditioner`` accepts: the registered preconditioners and "direct"."""
-    return preconditioner_names() + ("direct",)
+    """Every name ``preconditioner`` accepts: the registered preconditioners, "direct" and "auto"."""
+    return preconditioner_names() + ("direct", "auto")
 
 
 @dataclass
 class LinearSolverParams:
-    """How H δ = −g is solved: CG with a preconditioner from the registry, or "direct" (Cholesky).
+    """How H δ = −g is solved: "auto" (direct or GDSW-preconditioned CG, whichever the cost model
+    predicts faster for this graph), CG with a preconditioner from the registry, or "direct".
 
     ``forcing="eisenstat-walker"`` makes the CG tolerance an inexact-Newton forcing term.
     """
 
-    preconditioner: str = "gdsw"  # a registered preconditioner (none, jacobi, …, gdsw, rgdsw) or direct
+    preconditioner: str = "auto"  # auto | direct | a registered preconditioner (none, jacobi, …, gdsw, rgdsw)
     subdomains: int | None = None  # None: about `subdomain_size` poses each
     subdomain_size: int = 500
     partition: str = "auto"  # auto (segments or metis, the smaller interface) | segments | metis

@@ -53,7 +53,7 @@ def test_gtsam_lm_params_carry_tolerances_lambda_and_hook():
     params.setlambdaInitial(1e-3)
     calls = []
     params.iterationHook = lambda it, before, after: calls.append((it, before, after))
-    opt = SchwarzOptimizer(prob.graph, prob.initial, params, linear_solver=LinearSolverParams(subdomains=4))
+    opt = SchwarzOptimizer(prob.graph, prob.initial, params, linear_solver=LinearSolverParams(preconditioner="gdsw", subdomains=4))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         opt.optimize()
@@ -77,7 +77,7 @@ def test_python_default_is_levenberg_marquardt_and_silent(capsys):
 
 def test_no_convergence_warns_with_the_reason():
     prob = square_loops(4, 4, sigma=0.05, seed=1)
-    opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(max_iterations=1))
+    opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(preconditioner="gdsw", max_iterations=1))
     with pytest.warns(RuntimeWarning, match="did not converge: maximum of 1 iterations"):
         opt.optimize()
     assert not opt.converged
@@ -108,7 +108,7 @@ def test_graph_without_prior_is_anchored_not_a_traceback():
         if len(prob.graph.at(i).keys()) == 2:
             free.add(prob.graph.at(i))
     for method in ("gn", "lm"):
-        opt = SchwarzOptimizer(free, prob.initial, SchwarzParams(method=method, subdomains=2))
+        opt = SchwarzOptimizer(free, prob.initial, SchwarzParams(preconditioner="gdsw", method=method, subdomains=2))
         opt.optimize()
         assert opt.summary()["anchored"] == [int(free.keyVector()[0])]
         ref = gtsam.LevenbergMarquardtOptimizer(prob.graph, prob.initial).optimize()
@@ -127,3 +127,20 @@ def test_typed_params_and_records():
     assert isinstance(h, gs.IterationRecord) and h["cg_iterations"] == h.cg_iterations
     assert dict(h)["lambda"] == h.lambda_ and "lambda_" not in dict(h)
     assert not hasattr(gs.GaussNewtonParams(), "lambda_initial")  # λ only on LM's params
+
+
+def test_automatic_linear_solver_records_its_choice_and_reason(monkeypatch):
+    """The default "auto" picks direct where the factor hardly fills (the model problem) and says why;
+    a cost model that favours Schwarz gives GDSW-preconditioned CG with the same answer."""
+    from gtsam_schwarz.nonlinear.linear_solver import CostModel
+    prob = square_loops(8, 6, sigma=0.05, seed=2)
+    auto = SchwarzOptimizer(prob.graph, prob.initial)
+    auto.optimize()
+    choice = auto.summary()["linear_solver"]
+    assert choice["requested"] == "auto" and choice["used"] == "direct"
+    assert "nnz(L)" in choice["reason"] and "predicted" in choice["reason"]
+    monkeypatch.setattr(CostModel, "SCHWARZ_OVERHEAD", 0.0)
+    schwarz = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(subdomains=4))
+    schwarz.optimize()
+    assert schwarz.summary()["linear_solver"]["used"] == "gdsw" and schwarz.history[0]["coarse_size"] > 0
+    assert schwarz.error() == pytest.approx(auto.error(), rel=1e-8)

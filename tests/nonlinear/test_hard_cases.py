@@ -38,7 +38,7 @@ def test_far_from_origin_and_wrapped_angles(name):
     result = opt.optimize()
     assert opt.converged and opt.error() <= ref * (1 + 1e-6)
     # same trajectory as the unshifted problem, moved back
-    base = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(method="lm", subdomains=8)).optimize()
+    base = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(preconditioner="gdsw", method="lm", subdomains=8)).optimize()
     back = gtsam.Values()
     Tinv = gtsam.Pose2(1e6, -1e6, 0.0).inverse()
     for k in result.keys():
@@ -65,7 +65,7 @@ def test_chain_without_loop_closures():
         f = prob.graph.at(i)
         if len(f.keys()) == 1 or f.keys()[1] == f.keys()[0] + 1:
             graph.add(f)
-    opt = SchwarzOptimizer(graph, prob.initial, SchwarzParams(method="gn", subdomains=3))
+    opt = SchwarzOptimizer(graph, prob.initial, SchwarzParams(preconditioner="gdsw", method="gn", subdomains=3))
     opt.optimize()
     assert opt.error() < 1e-10  # dead reckoning is already optimal for a tree
 

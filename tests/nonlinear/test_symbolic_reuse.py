@@ -27,7 +27,7 @@ def two_points():
     """The model problem linearized at two different points (same graph, so same block pattern)."""
     prob = square_loops(6, 4, sigma=0.05, seed=3)
     km, first = _system(prob, prob.initial)
-    opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(method="gn", max_iterations=1))
+    opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(preconditioner="gdsw", method="gn", max_iterations=1))
     opt.optimize()
     _, second = _system(prob, opt.values())
     return km, first.H, second.H
@@ -128,7 +128,7 @@ def test_auto_partition_picks_the_smaller_interface():
 
 def test_lagged_preconditioner_is_rebuilt_when_the_poses_move_and_reused_for_rejected_steps():
     prob = square_loops(8, 8, sigma=0.05, seed=1)
-    opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(method="lm", subdomains=4, lag_distance=1.0))
+    opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(preconditioner="gdsw", method="lm", subdomains=4, lag_distance=1.0))
     opt.optimize()
     h = opt.history
     assert h[0]["preconditioner_rebuilt"]

@@ -1,0 +1,180 @@
+"""The PETSc back-end against the serial solver: same preconditioner, same CG counts, same answer.
+
+Everything PETSc runs in ``mpiexec`` subprocesses (1 and 2 ranks, oversubscribed), so the pytest
+process never initializes MPI. Skipped, with a one-line reason, when petsc4py, mpi4py or mpiexec
+are absent (``pip install -e .`` stays PETSc-free).
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import subprocess
+
+import numpy as np
+import pytest
+
+from gtsam_schwarz.backends.petsc.env import launch_command, mpi_environment, mpi_ready, mpiexec_command
+from gtsam_schwarz.backends.petsc.layout import rank_layout
+
+READY, WHY = mpi_ready()
+needs_mpi = pytest.mark.skipif(not READY, reason=WHY)
+pytestmark = pytest.mark.mpi
+
+HERE = pathlib.Path(__file__).resolve().parent
+ROOT = HERE.parents[1]
+LOOPS, POINTS = 8, 8  # 771 dofs: small enough for a few seconds per run
+TIMEOUT = 120
+
+
+def _mpirun(ranks: int, argv: list[str]) -> dict:
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=TIMEOUT, env=mpi_environment(), cwd=ROOT)
+    assert proc.returncode == 0, f"mpiexec -n {ranks} failed ({proc.returncode}):\n{proc.stderr[-3000:]}"
+    lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
+    assert len(lines) == 1, f"expected one JSON line on stdout, got:\n{proc.stdout[-3000:]}"
+    return json.loads(lines[0])
+
+
+def _run(ranks: int, *args: str) -> dict:
+    return _mpirun(ranks, launch_command(ranks, ["--square-loops", str(LOOPS), str(POINTS), "--json", *args],
+                                         oversubscribe=True))
+
+
+@pytest.fixture(scope="module")
+def serial():
+    """The serial optimizer on the model problem (GN, gdsw on one loop per subdomain)."""
+    import gtsam_schwarz as gs
+
+    pb = gs.square_loops(LOOPS, POINTS)
+    params = gs.SchwarzParams(method="gn", preconditioner="gdsw", subdomains=LOOPS, partition="segments")
+    opt = gs.SchwarzOptimizer(pb.graph, pb.initial, params)
+    opt.optimize()
+    return opt
+
+
+ARGS = ("--method", "gn", "--preconditioner", "gdsw", "--subdomains", str(LOOPS), "--partition", "segments")
+
+
+def _assert_matches_serial(report: dict, serial) -> None:
+    s = serial.summary()
+    assert report["ranks_agree"]
+    assert report["iterations"] == s["iterations"]
+    assert report["final_error"] == pytest.approx(s["final_error"], rel=1e-8)
+    assert report["coarse_size"] == s["coarse_size"]
+    ours, theirs = np.array(report["cg_iterations"]), np.array(s["cg_iterations"])
+    assert len(ours) == len(theirs)
+    assert np.all(np.abs(ours - theirs) <= np.maximum(1, 0.1 * theirs)), (ours, theirs)
+    lam = np.array(report["lambda_max"], dtype=float)
+    ref = np.array([h.lambda_max for h in serial.history])
+    assert np.allclose(lam, ref, rtol=1e-3), (lam, ref)
+
+
+@needs_mpi
+def test_one_rank_equals_serial(serial):
+    _assert_matches_serial(_run(1, *ARGS), serial)
+
+
+@needs_mpi
+def test_two_ranks_equal_serial(serial):
+    report = _run(2, *ARGS)
+    _assert_matches_serial(report, serial)
+    assert report["ranks"] == 2
+    rows = [r["rows"] for r in report["per_rank"]]
+    assert sum(rows) == int(serial.linearizer.offsets[-1]) and min(rows) > 0
+
+
+@needs_mpi
+def test_two_ranks_lm_writes_only_on_rank_zero(tmp_path):
+    out = tmp_path / "out.g2o"
+    report = _run(2, "--subdomains", "4", "-o", str(out))
+    assert report["converged"] and report["ranks_agree"]
+    assert out.exists() and list(tmp_path.iterdir()) == [out]
+    assert out.read_text().count("VERTEX_SE2") == report["poses"]
+
+
+@needs_mpi
+def test_preconditioner_and_cg_equal_serial_on_two_ranks():
+    """M⁻¹x of PETSc (ASM + PCMG with Φ) equals the serial TwoLevelSchwarz / AdditiveSchwarz, after the
+    first build and after a numeric update; one CG solve gives the serial iterations and solution."""
+    cmd = mpiexec_command(2, oversubscribe=True) + [
+        __import__("sys").executable, str(HERE / "mpi_checks.py"), str(LOOPS), str(POINTS)]
+    out = _mpirun(2, cmd)
+    for case in out["cases"]:
+        assert max(case["apply"]) < 1e-10, case
+        assert max(case["x_error"]) < 1e-8, case
+        assert case["coarse_size"][0] == case["coarse_size"][1], case
+        for a, b in zip(case["cg_petsc"], case["cg_serial"]):
+            assert abs(a - b) <= max(1, 0.1 * b), case
+        assert all(case["x_same_on_ranks"]), case
+
+
+def test_layout_owns_every_dof_once_with_contiguous_ranks():
+    """Ownership by subdomain (no PETSc needed): a permutation, contiguous rank ranges, every rank
+    owning the dofs of whole vertices, overlapping index sets renumbered consistently."""
+    import scipy.sparse as sp
+
+    import gtsam_schwarz as gs
+    from gtsam_schwarz.dd import GraphStructure, decompose
+    from gtsam_schwarz.linearization.gtsam_export import GtsamLinearizer
+
+    pb = gs.square_loops(LOOPS, POINTS)
+    lin = GtsamLinearizer(pb.graph, pb.initial)
+    H = sp.csr_matrix(lin.linearize(lin.state(pb.initial)).H)
+    dec = decompose(GraphStructure.from_matrix(H, lin.offsets), 6, "metis", 1)
+    for ranks in (1, 2, 3, 6):
+        lay = rank_layout(dec, ranks)
+        assert np.array_equal(np.sort(lay.order), np.arange(H.shape[0]))
+        assert np.array_equal(lay.position[lay.order], np.arange(H.shape[0]))
+        assert np.all(np.diff(lay.ranges) > 0) and lay.ranges[-1] == H.shape[0]
+        assert np.all(np.diff(lay.dof_rank[lay.order]) >= 0)
+        assert sorted(np.unique(lay.subdomain_rank)) == list(range(ranks))
+        sets = dec.index_sets(overlapping=True)
+        x = np.random.default_rng(0).standard_normal(H.shape[0])
+        for r in range(ranks):
+            for local, i in zip(lay.index_sets(sets, r), lay.subdomains(r)):
+                assert np.array_equal(np.sort(lay.permute(x)[local]), np.sort(x[sets.get(i)]))
+    with pytest.raises(ValueError, match="subdomains"):
+        rank_layout(dec, 7)
+
+
+def test_local_coarse_basis_rows_add_up_to_the_serial_basis():
+    """Each rank's rows of Φ (extended into its own subdomains' interiors) equal the serial GDSW/RGDSW
+    basis on those rows (no PETSc needed)."""
+    import scipy.sparse as sp
+
+    import gtsam_schwarz as gs
+    from gtsam_schwarz.backends.petsc.coarse import LocalCoarseBasis
+    from gtsam_schwarz.coarse import gdsw_coarse_space
+    from gtsam_schwarz.dd import GraphStructure, decompose, find_interface
+    from gtsam_schwarz.linearization.gtsam_export import GtsamLinearizer
+
+    pb = gs.square_loops(LOOPS, POINTS)
+    lin = GtsamLinearizer(pb.graph, pb.initial)
+    state = lin.state(pb.initial)
+    H = sp.csr_matrix(lin.linearize(state).H)
+    geometry = lin.geometry(state)
+    for partition, kind, N, ranks in (("segments", "gdsw", 8, 2), ("metis", "gdsw", 6, 3), ("metis", "rgdsw", 7, 4)):
+        dec = decompose(GraphStructure.from_matrix(H, lin.offsets), N, partition, 1)
+        interface = find_interface(dec)
+        ref = gdsw_coarse_space(H, dec, interface, kind, geometry, True, lin.translation_mask()).Phi
+        lay = rank_layout(dec, ranks)
+        total = sp.csr_matrix(ref.shape)
+        for r in range(ranks):
+            basis = LocalCoarseBasis(dec, interface, lay.subdomains(r), lay.dof_rank == r, kind, True,
+                                     lin.translation_mask())
+            for _ in range(2):  # the second call reuses the factorizations' patterns
+                rows, cols, vals, nc = basis(H, geometry)
+            assert np.all(lay.dof_rank[rows] == r)
+            total = total + sp.csr_matrix((vals, (rows, cols)), shape=(H.shape[0], nc))
+        assert abs(total - ref).max() < 1e-12 * abs(ref).max()
+
+
+def test_mpiexec_command_has_the_open_mpi_flags(monkeypatch):
+    from gtsam_schwarz.backends.petsc import env
+
+    monkeypatch.setattr(env, "_is_open_mpi", lambda exe: True)
+    monkeypatch.setattr(env.os, "geteuid", lambda: 0)
+    cmd = env.mpiexec_command(64, exe="mpiexec")
+    assert cmd[:3] == ["mpiexec", "-n", "64"] and "--allow-run-as-root" in cmd and "--oversubscribe" in cmd
+    monkeypatch.setattr(env.os, "geteuid", lambda: 1000)
+    assert env.mpiexec_command(1, exe="mpiexec", oversubscribe=False) == ["mpiexec", "-n", "1"]
