@@ -32,6 +32,8 @@ _MAX_ID = 2**63 - 1
 # Cholesky pivots below this times the largest diagonal entry count as singular (roundoff level);
 # the public datasets' smallest ratio (INTEL, parking-garage) is ~1e-11, far above.
 _PIVOT_RTOL = 64 * np.finfo(float).eps
+#: eigenvalue floor (relative to the largest) when a non-positive-definite information matrix is repaired
+PD_FLOOR = 1e-6
 
 
 class GraphFileError(ValueError):
@@ -244,8 +246,12 @@ def _normalize_quaternion(path: str, lineno: int, label: str, values: list[float
     values[3:7] = [v / norm for v in q]
 
 
-def _information(path: str, parsed: _Parsed, values: np.ndarray) -> np.ndarray:
-    """Information matrices (n, d, d) in GTSAM's tangent order; each must pass a Cholesky test."""
+def _information(path: str, parsed: _Parsed, values: np.ndarray, strict: bool = False) -> np.ndarray:
+    """Information matrices (n, d, d) in GTSAM's tangent order, each positive definite.
+
+    One that fails the Cholesky test is refused with ``strict``; otherwise it is replaced by the
+    nearest positive definite matrix by eigenvalue clipping (eigenvalues below ``PD_FLOOR`` × the
+    largest raised to it; the eigenvectors kept), with one warning naming the first line and the count."""
     n = len(values)
     if parsed.dim == 2:
         info = values[:, 3:9][:, _INFO2_INDEX[parsed.fmt]].reshape(n, 3, 3)
@@ -264,8 +270,17 @@ def _information(path: str, parsed: _Parsed, values: np.ndarray) -> np.ndarray:
     if len(bad):
         k = int(bad[0])
         i, j = parsed.edge_ids[k]
-        raise _fail(path, parsed.edge_lines[k], f"information matrix of edge {i} -> {j} is not symmetric positive "
-                                                f"definite (Cholesky fails or is numerically singular)")
+        where = f"information matrix of edge {i} -> {j} is not symmetric positive definite"
+        w, V = np.linalg.eigh(info[bad])
+        top = w.max(axis=1)
+        if strict or np.any(top <= 0):
+            why = "(Cholesky fails or is numerically singular)" if strict else "and has no positive eigenvalue"
+            raise _fail(path, parsed.edge_lines[k], f"{where} {why}")
+        w = np.maximum(w, PD_FLOOR * top[:, None])
+        info[bad] = np.einsum("nij,nj,nkj->nik", V, w, V)
+        parsed.warnings.append(
+            f"{path}:{parsed.edge_lines[k]}: {where}; {len(bad)} information matri{'ces' if len(bad) > 1 else 'x'} "
+            f"repaired by eigenvalue clipping (floor {PD_FLOOR:g} x the largest eigenvalue)")
     if parsed.dim == 3:
         info = info[:, _G2O_TO_GTSAM_3D][:, :, _G2O_TO_GTSAM_3D]
     return info
@@ -294,12 +309,14 @@ def _first_line_of(parsed: _Parsed, pose: int) -> int:
     return next(line for (i, j), line in zip(parsed.edge_ids, parsed.edge_lines) if pose in (i, j))
 
 
-def load_graph(path, *, add_prior: bool = True, prior_sigma: float = 1e-3) -> LoadedGraph:
+def load_graph(path, *, add_prior: bool = True, prior_sigma: float = 1e-3, strict: bool = False) -> LoadedGraph:
     """Read a g2o (2D/3D) or TORO (2D) pose graph into GTSAM between factors and initial Values.
 
     ``FIX id`` lines become priors at the file's value with isotropic sigma ``prior_sigma``; if
     there is none and ``add_prior``, one gauge prior of that sigma is put on the smallest id.
-    Raises GraphFileError (one line naming file, line and id) for any defect of the file.
+    Raises GraphFileError (one line naming file, line and id) for any defect of the file. Information
+    matrices that are not positive definite are repaired (see ``_information``) and lines of unknown
+    types skipped, each with a warning in ``LoadedGraph.warnings``; ``strict=True`` refuses both.
     """
     if not (isinstance(prior_sigma, (int, float)) and math.isfinite(prior_sigma) and prior_sigma > 0):
         raise ValueError(f"prior_sigma must be a positive finite number, got {prior_sigma!r}")
@@ -316,7 +333,9 @@ def load_graph(path, *, add_prior: bool = True, prior_sigma: float = 1e-3) -> Lo
         raise _fail(path, None, f"no edges ({what}): nothing to optimize")
     dim, fmt = parsed.dim, parsed.fmt
     edge_values = np.array(parsed.edge_values)
-    info = _information(path, parsed, edge_values)
+    if strict and parsed.unknown:
+        raise _fail(path, None, "; ".join(parsed.warnings) + " (strict)")
+    info = _information(path, parsed, edge_values, strict)
     edge_ids = np.array(parsed.edge_ids, dtype=np.int64)
 
     # the poses: the VERTEX ids, or (edges only) every id an edge names

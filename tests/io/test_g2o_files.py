@@ -468,12 +468,15 @@ BAD_INPUTS = {
 }
 
 
+STRICT_ONLY = {"not-positive-definite", "singular-information", "se3-not-positive-definite"}  # repaired by default
+
+
 @pytest.mark.parametrize("case", list(BAD_INPUTS))
 def test_bad_input_gives_one_line_error(tmp_path, case):
     text, line, what = BAD_INPUTS[case]
     path = write(tmp_path, f"{case}.g2o", text)
     with pytest.raises(GraphFileError) as info:
-        load_graph(path)
+        load_graph(path, strict=case in STRICT_ONLY)
     message = str(info.value)
     where = f"{path}:{line}" if line is not None else f"{path}"
     assert message == f"{where}: {what}"
@@ -494,3 +497,25 @@ def test_unreadable_files(tmp_path):
 
 def test_error_is_a_value_error():
     assert issubclass(GraphFileError, ValueError)
+
+
+@pytest.mark.parametrize("case", sorted(STRICT_ONLY))
+def test_information_not_positive_definite_is_repaired_with_a_warning(tmp_path, case):
+    text, line, _ = BAD_INPUTS[case]
+    path = write(tmp_path, f"{case}.g2o", text)
+    g = load_graph(path)
+    assert len(g.warnings) == 1 and g.warnings[0].startswith(f"{path}:{line}: information matrix of edge")
+    assert "1 information matrix repaired by eigenvalue clipping" in g.warnings[0]
+    for i in range(g.graph.size()):  # every factor now has a positive definite information matrix
+        model = g.graph.at(i).noiseModel()
+        info = model.information() if hasattr(model, "information") else np.eye(model.dim())
+        assert np.linalg.eigvalsh(info).min() > 0
+    assert np.isfinite(g.graph.error(g.initial))
+
+
+def test_unknown_records_are_refused_with_strict(tmp_path):
+    path = write(tmp_path, "extra.g2o", "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nFOO 1 2\n"
+                 "EDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n")
+    assert "unknown tag 'FOO'" in load_graph(path).warnings[0]
+    with pytest.raises(GraphFileError, match="unknown tag 'FOO'.*strict"):
+        load_graph(path, strict=True)
