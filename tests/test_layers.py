@@ -15,7 +15,9 @@ ALLOWED = {
     "io": set(), "problems": {"dd"}, "dd": set(), "solvers": set(), "krylov": set(),
     "coarse": {"dd", "solvers"}, "linearization": {"dd"}, "initialization": {"krylov", "solvers", "dd"},
     "schwarz": {"dd", "solvers", "coarse"},
-    "nonlinear": {"dd", "solvers", "krylov", "coarse", "schwarz", "linearization", "initialization"},
+    "nonlinear": {"dd", "solvers", "krylov", "coarse", "schwarz", "linearization", "initialization", "backends"},
+    # a backend provides the nonlinear layer's LinearSolver interface on other machinery (PETSc over MPI)
+    "backends": {"dd", "solvers", "krylov", "coarse", "schwarz", "linearization", "nonlinear", "io", "problems"},
 }
 
 

@@ -1,4 +1,9 @@
-"""The ``gtsam-schwarz`` command line: solve, compare, synth, demo (commands.py), paper and bench (bench.py)."""
+"""The ``gtsam-schwarz`` command line: solve, compare, synth, demo (commands.py), paper and bench (bench.py).
+
+Conventions: results on stdout (a table, or one JSON object with ``--json``), progress and errors on
+stderr; a usage error is one line and exit code 2; a closed stdout (``| head``) ends the command
+quietly with exit code 141 (128 + SIGPIPE, as a shell reports a process killed by SIGPIPE).
+"""
 
 from __future__ import annotations
 
@@ -6,13 +11,15 @@ import argparse
 import contextlib
 import json
 import os
-import pathlib
 import sys
 
 from .bench import add_bench
 from .jsonout import json_safe
 from .runtime import tune_allocator
-from .commands import UsageError, add_all, nonnegative_int, positive_float
+from .commands import UsageError, add_all, make_out_dir, nonnegative_int, positive_float
+
+DEFAULT_PAPER_OUT = "paper-results"  # in the current folder: never the committed docs/ unless asked
+EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE
 
 
 class Parser(argparse.ArgumentParser):
@@ -28,7 +35,9 @@ def add_paper(sub) -> None:
                                    "coarse space without rotation) and figures, go past its largest case "
                                    "(1024 loops, overlap 2 and 3), and write a Markdown report.")
     p.add_argument("--quick", action="store_true", help="a subset that runs in well under two minutes")
-    p.add_argument("--out", default="docs", help="directory for the report and the figures (default: docs)")
+    p.add_argument("--out", default=DEFAULT_PAPER_OUT, metavar="DIR",
+                   help=f"folder for the report and the figures, created if its parent exists (default: "
+                        f"./{DEFAULT_PAPER_OUT}; '--out docs' refreshes the committed report)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     p.add_argument("--sigma", type=positive_float, default=None,
                    help="odometry noise of the model problem (default 0.005)")
@@ -55,15 +64,7 @@ def _stdout_to_stderr():
 def run_paper(args) -> int:
     from .paper import Settings, reproduce
 
-    out = pathlib.Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise UsageError(f"--out {args.out}: exists and is not a directory")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UsageError(f"--out {args.out}: cannot create it: {exc.strerror or exc}") from None
-    if not os.access(out, os.W_OK):
-        raise UsageError(f"--out {args.out}: not writable")
+    out = make_out_dir("--out", args.out)
     settings = Settings(quick=args.quick, seed=args.seed,
                         **({"sigma": args.sigma} if args.sigma is not None else {}),
                         case_seconds=args.budget or (30.0 if args.quick else 600.0),
@@ -85,8 +86,13 @@ def run_paper(args) -> int:
 
 
 def build_parser() -> Parser:
+    from .. import __version__
+
     parser = Parser(prog="gtsam-schwarz", description="Schwarz-preconditioned Gauss-Newton for GTSAM pose graphs.")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}",
+                        help="print the version and exit")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser,
+                                help="one of these; 'gtsam-schwarz COMMAND --help' shows its options")
     sub.required = True
     add_all(sub)
     add_paper(sub)
@@ -94,21 +100,51 @@ def build_parser() -> Parser:
     return parser
 
 
-def main(argv=None) -> int:
+def _stderr(line: str) -> None:
+    try:
+        print(line, file=sys.stderr, flush=True)
+    except (OSError, ValueError):  # stderr closed too: nothing left to tell
+        pass
+
+
+def _silence_stdout() -> None:
+    """After EPIPE: point fd 1 at /dev/null so that the interpreter's final flush cannot fail again
+    (the recipe of Python's documentation, "Note on SIGPIPE")."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):
+        pass
+
+
+def _run(argv) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     tune_allocator()  # process tuning belongs to the application, not to the library
     try:
         return args.run(args)
     except UsageError as exc:
-        print(f"gtsam-schwarz {args.command}: error: {exc}", file=sys.stderr)
+        _stderr(f"gtsam-schwarz {args.command}: error: {exc}")
         return 2
     except KeyboardInterrupt:
-        print("gtsam-schwarz: interrupted", file=sys.stderr)
+        _stderr("gtsam-schwarz: interrupted")
         return 130
+    except BrokenPipeError:
+        raise
     except Exception as exc:  # a failure inside the computation: one line, no traceback
-        print(f"gtsam-schwarz {args.command}: error: {type(exc).__name__}: {exc}", file=sys.stderr)
+        _stderr(f"gtsam-schwarz {args.command}: error: {type(exc).__name__}: {exc}")
         return 1
+
+
+def main(argv=None) -> int:
+    try:
+        code = _run(argv)
+        sys.stdout.flush()  # a closed pipe shows here at the latest, not at interpreter exit
+        return code
+    except BrokenPipeError:  # the reader of stdout went away (| head): stop quietly
+        _silence_stdout()
+        return EXIT_BROKEN_PIPE
 
 
 if __name__ == "__main__":

@@ -12,9 +12,6 @@ import math
 import os
 import pathlib
 import sys
-import time
-
-import numpy as np
 
 from .compare import GTSAM_SOLVERS, run_gtsam, run_ours
 from .jsonout import json_safe
@@ -49,10 +46,6 @@ positive_float = _number(float, 0.0, strict=True)
 nonnegative_float = _number(float, 0.0, strict=False)
 
 
-def _tty() -> bool:
-    return sys.stderr.isatty()
-
-
 def _load(path: str):
     from ..io import GraphFileError, load_graph
 
@@ -69,6 +62,78 @@ def _load(path: str):
         raise UsageError(f"{path}: cannot read: {exc}") from None
 
 
+# -- checks on output paths, before any work ------------------------------------------------------
+GRAPH_FORMATS = {".g2o": "g2o", ".tum": "tum"}  # -o: by extension
+TRUTH_FORMATS = {".g2o": "g2o", ".tum": "tum"}  # synth --ground-truth: by extension
+
+
+def check_output(option: str, path: str, formats: dict | None = None) -> str | None:
+    """Refuse, as a :class:`UsageError`, an output path whose folder does not exist (we never create
+    it), is not a folder or is not writable, a path that is a folder, or (``formats``: extension →
+    format) an unknown extension. Returns the format."""
+    p = pathlib.Path(path)
+    folder = p.parent
+    shown = str(folder) if str(folder) not in ("", ".") else "the current folder"
+    if not folder.exists():
+        raise UsageError(f"{option} {path}: folder {shown} does not exist (create it first)")
+    if not folder.is_dir():
+        raise UsageError(f"{option} {path}: {shown} is not a folder")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise UsageError(f"{option} {path}: folder {shown} is not writable")
+    if p.is_dir():
+        raise UsageError(f"{option} {path}: is a directory, expected a file name")
+    if formats is None:
+        return None
+    fmt = formats.get(p.suffix.lower())
+    if fmt is None:
+        choices = ", ".join(formats)
+        raise UsageError(f"{option} {path}: unknown extension {p.suffix or '(none)'!s}; use {choices}")
+    return fmt
+
+
+def check_plot(option: str, path: str) -> str:
+    """:func:`check_output` for a figure: png, pdf or svg by the extension."""
+    from .plots import PLOT_FORMATS
+
+    return check_output(option, path, {f".{f}": f for f in PLOT_FORMATS})
+
+
+def _load_truth(path: str):
+    from .trajectory import TrajectoryError, read_trajectory
+
+    try:
+        return read_trajectory(path)
+    except TrajectoryError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def _check_truth_matches(truth, values) -> None:
+    from .trajectory import Trajectory, TrajectoryError, associate
+
+    try:
+        associate(Trajectory.from_values(values), truth)
+    except TrajectoryError as exc:
+        raise UsageError(f"--ground-truth: {exc}") from None
+
+
+def _accuracy(values, truth) -> dict | None:
+    from .trajectory import evaluate
+
+    return evaluate(values, truth) if values is not None else None
+
+
+def _progress(args, label: str, total: int | None = None, show: bool = True):
+    from .progress import Progress
+
+    return Progress(label, total, enabled=show and not getattr(args, "quiet", False))
+
+
+def _add_quiet(p) -> None:
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="no progress display on stderr (a live bar on a terminal, a line every few seconds "
+                        "otherwise); errors are still printed")
+
+
 def _iteration_printer(stream):
     def hook(record):
         flag = "" if record["accepted"] else "  rejected"
@@ -78,52 +143,129 @@ def _iteration_printer(stream):
     return hook
 
 
+def _progress_hook(progress):
+    """Our optimizer's iteration hook that notes the iteration on ``progress``."""
+    def hook(record):
+        progress.note(f"iteration {record['iteration']}, error {record['error']:.6g}, cg {record['cg_iterations']}")
+    return hook
+
+
+def _gtsam_progress_hook(progress):
+    """GTSAM's ``iterationHook`` (iteration, error before, error after) that notes on ``progress``."""
+    def hook(iteration, before, after):
+        progress.note(f"iteration {iteration}, error {after:.6g}")
+    return hook
+
+
+def _chain(*hooks):
+    hooks = [h for h in hooks if h is not None]
+    if not hooks:
+        return None
+    if len(hooks) == 1:
+        return hooks[0]
+
+    def hook(record):
+        for h in hooks:
+            h(record)
+    return hook
+
+
+ACCURACY_NOTE = ("ATE: position RMSE after rigid Umeyama alignment, no scale (evo_ape -a); "
+                 "RPE: relative translation RMSE, consecutive poses (evo_rpe)")
+
+
 # -- solve --------------------------------------------------------------------------------------
 def add_solve(sub) -> None:
     p = sub.add_parser("solve", help="optimize a g2o/TORO pose graph",
-                       description="Optimize a g2o or TORO pose graph with Schwarz-preconditioned CG.")
+                       description="Optimize a g2o or TORO pose graph with Schwarz-preconditioned CG. Prints a line "
+                                   "per iteration and a summary on stdout (or one JSON object with --json); "
+                                   "progress goes to stderr.")
     p.add_argument("file", help="g2o (VERTEX_SE2/EDGE_SE2, SE3:QUAT) or TORO (VERTEX2/EDGE2) file")
-    p.add_argument("--method", choices=METHODS, default="lm", help="lm (default) or gn")
-    p.add_argument("--preconditioner", choices=LINEAR_SOLVERS, default="gdsw")
-    p.add_argument("--subdomains", type=positive_int, default=None, help="default: about 500 poses each")
-    p.add_argument("--partition", choices=PARTITIONS, default="auto")
-    p.add_argument("--overlap", type=nonnegative_int, default=1)
-    p.add_argument("--cg-tol", type=positive_float, default=1e-8)
-    p.add_argument("--max-iterations", type=nonnegative_int, default=100)
-    p.add_argument("--inexact", action="store_true", help="Eisenstat-Walker forcing of the CG tolerance")
-    p.add_argument("-o", "--output", help="write the optimized graph as g2o (atomically)")
+    p.add_argument("--method", choices=METHODS, default="lm",
+                   help="nonlinear method: lm (Levenberg-Marquardt, default) or gn (Gauss-Newton)")
+    p.add_argument("--preconditioner", choices=LINEAR_SOLVERS, default="auto",
+                   help="linear solver: 'auto' (default: a sparse Cholesky or GDSW-preconditioned CG, whichever "
+                        "a cost model from the symbolic analysis predicts faster for this graph), 'direct', or a "
+                        "CG preconditioner (gdsw: two-level Schwarz with the GDSW coarse space, …)")
+    p.add_argument("--subdomains", type=positive_int, default=None, metavar="N",
+                   help="number of subdomains (default: about 500 poses each)")
+    p.add_argument("--partition", choices=PARTITIONS, default="auto",
+                   help="how to cut the graph: trajectory segments, METIS, or auto (whichever gives fewer "
+                        "interface poses; default)")
+    p.add_argument("--overlap", type=nonnegative_int, default=1, metavar="K",
+                   help="layers of overlap grown around each subdomain (default 1)")
+    p.add_argument("--cg-tol", type=positive_float, default=1e-8, metavar="T",
+                   help="CG stopping tolerance, relative residual (default 1e-8)")
+    p.add_argument("--max-iterations", type=nonnegative_int, default=100, metavar="N",
+                   help="most nonlinear iterations (default 100)")
+    p.add_argument("--inexact", action="store_true",
+                   help="Eisenstat-Walker forcing: loose CG tolerance far from the solution")
+    p.add_argument("-o", "--output", metavar="OUT.g2o|OUT.tum",
+                   help="write the optimized poses, atomically, in the format of the extension: .g2o (the graph "
+                        "with optimized vertices) or .tum (trajectory: key tx ty tz qx qy qz qw); the folder "
+                        "must exist")
     p.add_argument("--force", action="store_true", help="allow -o to overwrite the input file")
-    p.add_argument("--plot", help="write trajectory and convergence plots to this PNG")
+    p.add_argument("--plot", metavar="OUT.png|OUT.pdf|OUT.svg",
+                   help="write trajectory and convergence plots, in the format of the extension; the folder "
+                        "must exist")
+    p.add_argument("--ground-truth", metavar="FILE.g2o|FILE.tum",
+                   help="reference poses (g2o VERTEX lines or a TUM file whose timestamps are the pose keys): "
+                        "report ATE and RPE (RMSE, evo's definitions) of the initial guess and the result")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+    _add_quiet(p)
     p.set_defaults(run=run_solve)
 
 
-def run_solve(args) -> int:
+def _write_poses(path: str, fmt: str, loaded, values, args) -> None:
     from ..io import GraphFileError, write_g2o
+    from ..io.tum import write_tum
 
+    try:
+        if fmt == "tum":
+            write_tum(path, values)
+        else:
+            write_g2o(path, loaded.graph, values, force=args.force, input_path=args.file)
+    except GraphFileError as exc:
+        raise UsageError(str(exc)) from None
+    except OSError as exc:
+        raise UsageError(f"{path}: cannot write: {exc.strerror or exc}") from None
+
+
+def run_solve(args) -> int:
+    out_format = check_output("-o", args.output, GRAPH_FORMATS) if args.output else None
+    if args.plot:
+        check_plot("--plot", args.plot)
     if args.output and not args.force and pathlib.Path(args.output).exists() \
             and os.path.samefile(args.output, args.file):
         raise UsageError(f"{args.output}: refusing to overwrite the input file (use --force)")
     loaded = _load(args.file)
+    truth = None
+    if args.ground_truth:
+        truth = _load_truth(args.ground_truth)
+        _check_truth_matches(truth, loaded.initial)
     human = not args.json
-    out = sys.stdout if human else sys.stderr
-    hook = _iteration_printer(out) if (human or _tty()) else None
+    # progress on stderr, unless the iteration lines on a terminal's stdout already show it
+    progress = _progress(args, "solve", show=not (human and sys.stdout.isatty()))
     if human:
         print(f"{args.file}: {loaded.poses} poses, {loaded.edges} edges, {loaded.dimension}D "
               f"({loaded.format}, initial guess from {loaded.initial_guess})", flush=True)
+    hook = _chain(_iteration_printer(sys.stdout) if human else None, _progress_hook(progress))
     params = SchwarzParams(method=args.method, preconditioner=args.preconditioner, subdomains=args.subdomains,
                            partition=args.partition, overlap=args.overlap, cg_tol=args.cg_tol,
                            max_iterations=args.max_iterations, iteration_hook=hook,
                            forcing="eisenstat-walker" if args.inexact else "none")
-    row = run_ours(loaded.graph, loaded.initial, params)
+    with progress:
+        progress.start(f"{pathlib.Path(args.file).name} ({loaded.poses} poses, {args.method} + {args.preconditioner})")
+        row = run_ours(loaded.graph, loaded.initial, params)
+        progress.done(f"{row['iterations']} iterations, error {row['final_error']:.8g}")
     if args.output:
-        try:
-            write_g2o(args.output, loaded.graph, row["values"], force=args.force, input_path=args.file)
-        except GraphFileError as exc:
-            raise UsageError(str(exc)) from None
+        _write_poses(args.output, out_format, loaded, row["values"], args)
     if args.plot:
         from .solve_plots import solve_figure
-        solve_figure(args.plot, loaded, row)
+        try:
+            solve_figure(args.plot, loaded, row, truth=truth)
+        except OSError as exc:
+            raise UsageError(f"{args.plot}: cannot write: {exc.strerror or exc}") from None
     split = row["split"]
     report = {
         "file": str(args.file), "poses": loaded.poses, "edges": loaded.edges, "dimension": loaded.dimension,
@@ -133,19 +275,39 @@ def run_solve(args) -> int:
         "cg_iterations": row["cg_iterations"], "cg_mean": row["cg_mean"],
         "initial_error": row["initial_error"], "final_error": row["final_error"],
         "converged": row["converged"], "stop_reason": row["stop_reason"],
+        "linear_solver": row["linear_solver"], "anchored": row["anchored"],
         "seconds": {"total": row["seconds"], "linearize": split["linearize"] + split["export"],
                     "setup": split["setup"], "cg": split["cg"], "update": split["update"]},
         "output": args.output, "plot": args.plot,
     }
+    if truth is not None:
+        final, initial = _accuracy(row["values"], truth), _accuracy(loaded.initial, truth)
+        report["ground_truth"] = {
+            "file": str(args.ground_truth), "poses": final["poses"], "alignment": final["alignment"],
+            "ate_rmse": final["ate_rmse"], "rpe_rmse": final["rpe_rmse"],
+            "initial_ate_rmse": initial["ate_rmse"], "initial_rpe_rmse": initial["rpe_rmse"],
+            "definition": ACCURACY_NOTE}
     if args.json:
-        print(json.dumps(report))
+        print(json.dumps(json_safe(report), allow_nan=False))
     else:
+        ls = row["linear_solver"]
+        print(f"linear solver: {ls['used']}" + (f" (auto: {ls['reason']})" if ls["requested"] == "auto" else ""))
+        if row["anchored"]:
+            print(f"gauge: no prior on the component(s) of pose(s) {', '.join(map(str, row['anchored']))}: "
+                  f"its first pose anchored")
         print(f"{'converged' if row['converged'] else 'stopped'} after {row['iterations']} iterations "
               f"({row['stop_reason']}): error {row['initial_error']:.8g} -> {row['final_error']:.8g}; "
-              f"{row['subdomains']} subdomains, coarse space {row['coarse_size']}, "
-              f"{row['cg_mean']:.1f} CG iterations per solve; {row['seconds']:.2f} s "
+              + (f"sparse Cholesky; " if row["linear_solver"]["used"] == "direct" else
+                 f"{row['subdomains']} subdomains, coarse space {row['coarse_size']}, "
+                 f"{row['cg_mean']:.1f} CG iterations per solve; ") + f"{row['seconds']:.2f} s "
               f"(linearize {report['seconds']['linearize']:.2f}, setup {split['setup']:.2f}, cg {split['cg']:.2f})")
-        for what, path in (("optimized graph", args.output), ("plot", args.plot)):
+        if truth is not None:
+            g = report["ground_truth"]
+            print(f"against {args.ground_truth} ({g['poses']} poses): ATE {g['ate_rmse']:.6g} m, "
+                  f"RPE {g['rpe_rmse']:.6g} m (initial guess: ATE {g['initial_ate_rmse']:.6g} m, "
+                  f"RPE {g['initial_rpe_rmse']:.6g} m); ATE after rigid {g['alignment']} Umeyama alignment, "
+                  f"RPE over consecutive poses")
+        for what, path in (("optimized poses", args.output), ("plot", args.plot)):
             if path:
                 print(f"wrote {what} to {path}")
     return 0
@@ -157,123 +319,235 @@ OURS = ("gdsw", "one-level", "block-jacobi")
 
 def compare_rows(graph, initial, ours=OURS, gtsam_solvers=GTSAM_SOLVERS, method="lm", partition="auto",
                  subdomains=None, progress=None) -> list[dict]:
-    """Our solver with each preconditioner and GTSAM's optimizers on the same graph."""
+    """Our solver with each preconditioner and GTSAM's optimizers on the same graph.
+
+    ``progress``: a :class:`~gtsam_schwarz.apps.progress.Progress` told each solver's start, its
+    iterations and its end."""
     rows = []
     for name in gtsam_solvers:
-        if progress:
-            progress(name)
-        rows.append(run_gtsam(graph, initial, name))
+        if progress is not None:
+            progress.start(name)
+        rows.append(run_gtsam(graph, initial, name,
+                              iteration_hook=_gtsam_progress_hook(progress) if progress is not None else None))
+        if progress is not None:
+            progress.done("failed" if rows[-1].get("failed") else f"error {rows[-1]['final_error']:.8g}")
     for name in ours:
-        if progress:
-            progress(name)
+        label = f"schwarz-{method}-{name}"
+        if progress is not None:
+            progress.start(label)
         r = run_ours(graph, initial, SchwarzParams(method=method, preconditioner=name, partition=partition,
-                                                   subdomains=subdomains))
-        r["solver"] = f"schwarz-{method}-{name}"
+                                                   subdomains=subdomains,
+                                                   iteration_hook=_progress_hook(progress) if progress else None))
+        r["solver"] = label
         rows.append(r)
+        if progress is not None:
+            progress.done(f"error {r['final_error']:.8g}")
     ref = next((r for r in rows if r["solver"] == "gtsam-lm" and "failed" not in r), None)
     for r in rows:
         r["ratio_to_gtsam_lm"] = r["seconds"] / ref["seconds"] if ref and ref["seconds"] > 0 else float("nan")
     return rows
 
 
-def print_table(rows, stream=sys.stdout) -> None:
-    print(f"{'solver':<26}{'final error':>18}{'its':>6}{'CG/solve':>10}{'seconds':>10}{'x GTSAM LM':>12}", file=stream)
-    print("-" * 82, file=stream)
+def _failure_message(row) -> str:
+    return row.get("failed_message") or row.get("failed") or ""
+
+
+def print_table(rows, stream=None) -> None:
+    """The comparison table; ATE and RPE columns when the rows carry them; a failure's whole message
+    on indented lines below its row."""
+    stream = stream or sys.stdout
+    accuracy = any("ate_rmse" in r for r in rows)
+    extra = f"{'ATE [m]':>11}{'RPE [m]':>11}" if accuracy else ""
+    header = f"{'solver':<26}{'final error':>18}{'its':>6}{'CG/solve':>10}{'seconds':>10}{'x GTSAM LM':>12}{extra}"
+    print(header, file=stream)
+    print("-" * len(header), file=stream)
     for r in rows:
         err = f"{r['final_error']:.10g}" if math.isfinite(r["final_error"]) else "failed"
         cg = f"{r['cg_mean']:.1f}" if "cg_mean" in r else "-"
+        acc = ""
+        if accuracy:
+            acc = "".join(f"{r[k]:>11.4g}" if r.get(k) is not None and math.isfinite(r[k]) else f"{'-':>11}"
+                          for k in ("ate_rmse", "rpe_rmse"))
         print(f"{r['solver']:<26}{err:>18}{r['iterations']:>6}{cg:>10}{r['seconds']:>10.3f}"
-              f"{r['ratio_to_gtsam_lm']:>12.2f}", file=stream)
+              f"{r['ratio_to_gtsam_lm']:>12.2f}{acc}", file=stream)
         if r.get("failed"):
-            print(f"{'':<26}  ({r['failed']})", file=stream)
+            for line in _failure_message(r).splitlines():
+                if line.strip():
+                    print(f"{'':<28}{line.rstrip()}", file=stream)
 
 
 def _json_rows(rows):
     keep = ("solver", "final_error", "iterations", "seconds", "ratio_to_gtsam_lm", "cg_mean", "linear_solves",
-            "subdomains", "coarse_size", "converged", "failed")
-    return [json_safe({k: r[k] for k in keep if k in r}) for r in rows]
+            "subdomains", "coarse_size", "converged", "failed", "ate_rmse", "rpe_rmse")
+    out = []
+    for r in rows:
+        row = {k: r[k] for k in keep if k in r}
+        if r.get("failed"):
+            row["failed"] = _failure_message(r)
+        out.append(json_safe(row))
+    return out
+
+
+def _add_accuracy(rows, truth) -> None:
+    for r in rows:
+        acc = _accuracy(r.get("values"), truth)
+        r["ate_rmse"] = acc["ate_rmse"] if acc else None
+        r["rpe_rmse"] = acc["rpe_rmse"] if acc else None
 
 
 def add_compare(sub) -> None:
-    p = sub.add_parser("compare", help="our solver next to GTSAM's optimizers on one file")
-    p.add_argument("file")
-    p.add_argument("--subdomains", type=positive_int, default=None)
-    p.add_argument("--partition", choices=PARTITIONS, default="auto")
-    p.add_argument("--json", action="store_true", help='print {"rows": [...]} as one JSON object')
+    p = sub.add_parser("compare", help="our solver next to GTSAM's optimizers on one file",
+                       description="Run GTSAM's LM and GN (Cholesky), LM with PCG (block-Jacobi) and with "
+                                   "SubgraphSolver, and ours with GDSW, one-level Schwarz and block-Jacobi on the "
+                                   "same file; print final errors, iterations and time ratios to GTSAM's LM. "
+                                   "Progress goes to stderr.")
+    p.add_argument("file", help="g2o (VERTEX_SE2/EDGE_SE2, SE3:QUAT) or TORO (VERTEX2/EDGE2) file")
+    p.add_argument("--subdomains", type=positive_int, default=None, metavar="N",
+                   help="number of subdomains for ours (default: about 500 poses each)")
+    p.add_argument("--partition", choices=PARTITIONS, default="auto",
+                   help="how ours cuts the graph (default auto)")
+    p.add_argument("--ground-truth", metavar="FILE.g2o|FILE.tum",
+                   help="reference poses: add ATE and RPE (RMSE, evo's definitions) per solver")
+    p.add_argument("--json", action="store_true", help='print {"rows": [...]} as one JSON object on stdout')
+    _add_quiet(p)
     p.set_defaults(run=run_compare)
 
 
 def run_compare(args) -> int:
     loaded = _load(args.file)
-    progress = (lambda name: print(f"running {name} ...", file=sys.stderr, flush=True)) if _tty() else None
-    rows = compare_rows(loaded.graph, loaded.initial, partition=args.partition, subdomains=args.subdomains,
-                        progress=progress)
+    truth = None
+    if args.ground_truth:
+        truth = _load_truth(args.ground_truth)
+        _check_truth_matches(truth, loaded.initial)
+    with _progress(args, "compare", total=len(GTSAM_SOLVERS) + len(OURS)) as progress:
+        rows = compare_rows(loaded.graph, loaded.initial, partition=args.partition, subdomains=args.subdomains,
+                            progress=progress)
+    if truth is not None:
+        _add_accuracy(rows, truth)
     if args.json:
         print(json.dumps({"file": str(args.file), "poses": loaded.poses, "edges": loaded.edges,
                           "rows": _json_rows(rows)}))
     else:
         print(f"{args.file}: {loaded.poses} poses, {loaded.edges} edges, {loaded.dimension}D")
         print_table(rows)
+        if truth is not None:
+            print(ACCURACY_NOTE)
     return 0
 
 
 # -- synth ---------------------------------------------------------------------------------------
 def add_synth(sub) -> None:
-    p = sub.add_parser("synth", help="write the paper's model problem as a g2o file")
-    p.add_argument("--loops", type=positive_int, required=True)
-    p.add_argument("--points-per-side", type=positive_int, required=True)
-    p.add_argument("--sigma", type=nonnegative_float, default=0.01)
-    p.add_argument("--seed", type=nonnegative_int, default=0)
+    p = sub.add_parser("synth", help="write the paper's model problem as a g2o file",
+                       description="Write the paper's unit-square multi-loop problem (or its 3D helix) as g2o: "
+                                   "VERTEX lines are the dead-reckoning initial guess, EDGE lines the noisy "
+                                   "odometry and the loop closures.")
+    p.add_argument("--loops", type=positive_int, required=True, metavar="L", help="number of loops (= subdomains "
+                   "in the paper)")
+    p.add_argument("--points-per-side", type=positive_int, required=True, metavar="P",
+                   help="poses per side of the unit square (4P poses per loop)")
+    p.add_argument("--sigma", type=nonnegative_float, default=0.01, metavar="S",
+                   help="odometry noise standard deviation on x, y, theta (default 0.01)")
+    p.add_argument("--seed", type=nonnegative_int, default=0, metavar="K", help="noise seed (default 0)")
     p.add_argument("--3d", dest="three_d", action="store_true", help="the helix (Pose3) variant")
-    p.add_argument("-o", "--output", required=True)
-    p.add_argument("--force", action="store_true", help="overwrite an existing file")
+    p.add_argument("-o", "--output", required=True, metavar="FILE.g2o", help="the g2o file to write (atomically)")
+    p.add_argument("--ground-truth", metavar="FILE.g2o|FILE.tum",
+                   help="also write the true poses (g2o: same edges, true vertices; tum: trajectory), for "
+                        "solve --ground-truth")
+    p.add_argument("--force", action="store_true", help="overwrite existing files")
     p.set_defaults(run=run_synth)
 
 
 def run_synth(args) -> int:
     from ..io import GraphFileError, write_g2o
+    from ..io.tum import write_tum
     from ..problems import helix_loops, square_loops
 
     out = pathlib.Path(args.output)
-    if out.exists() and not args.force:
-        raise UsageError(f"{out}: exists (use --force to overwrite)")
+    check_output("-o", args.output)
+    truth_format = check_output("--ground-truth", args.ground_truth, TRUTH_FORMATS) if args.ground_truth else None
+    for path in (args.output, args.ground_truth):
+        if path and pathlib.Path(path).exists() and not args.force:
+            raise UsageError(f"{path}: exists (use --force to overwrite)")
+    if args.ground_truth and os.path.abspath(args.ground_truth) == os.path.abspath(args.output):
+        raise UsageError(f"--ground-truth {args.ground_truth}: the same file as -o")
     make = helix_loops if args.three_d else square_loops
     prob = make(args.loops, args.points_per_side, sigma=args.sigma, seed=args.seed)
     try:
         write_g2o(out, prob.graph, prob.initial, force=True)
+        if truth_format == "g2o":
+            write_g2o(args.ground_truth, prob.graph, prob.ground_truth, force=True)
+        elif truth_format == "tum":
+            write_tum(args.ground_truth, prob.ground_truth)
     except GraphFileError as exc:
         raise UsageError(str(exc)) from None
+    except OSError as exc:
+        raise UsageError(f"cannot write: {exc.strerror or exc}") from None
+    also = f"; ground truth in {args.ground_truth}" if args.ground_truth else ""
     print(f"wrote {out}: {prob.poses} poses, {prob.graph.size() - 1} edges "
-          f"({args.loops} loops x {args.points_per_side} points per side, sigma {args.sigma}, seed {args.seed})")
+          f"({args.loops} loops x {args.points_per_side} points per side, sigma {args.sigma}, seed {args.seed}){also}")
     return 0
 
 
 # -- demo ----------------------------------------------------------------------------------------
+DEMO_OURS = ("gdsw", "one-level", "block-jacobi", "none")
+DEMO_GTSAM = ("gtsam-lm", "gtsam-gn")
+DEMO_CONVERGENCE = ("none", "block-jacobi", "one-level", "gdsw")
+
+
 def add_demo(sub) -> None:
-    p = sub.add_parser("demo", help="the main job: the model problem solved with GDSW next to GTSAM")
-    p.add_argument("--loops", type=positive_int, default=16)
-    p.add_argument("--points-per-side", type=positive_int, default=16)
-    p.add_argument("--out", default=".", help="folder for the plots (default: current folder)")
+    p = sub.add_parser("demo", help="the main job: the model problem solved with GDSW next to GTSAM",
+                       description="Solve the paper's model problem (one subdomain per loop) with GTSAM's LM and "
+                                   "GN and with our GN and each preconditioner; print the table with ATE and RPE "
+                                   "against the known ground truth, and write a trajectory and a convergence plot.")
+    p.add_argument("--loops", type=positive_int, default=16, metavar="L", help="number of loops (default 16)")
+    p.add_argument("--points-per-side", type=positive_int, default=16, metavar="P",
+                   help="poses per side of the square (default 16)")
+    p.add_argument("--out", default=".", metavar="DIR",
+                   help="folder for the two PNG plots (default: current folder; created if its parent exists)")
+    _add_quiet(p)
     p.set_defaults(run=run_demo)
+
+
+def make_out_dir(option: str, path: str) -> pathlib.Path:
+    """The output folder ``path``, created if missing; its parent must exist (no silent trees)."""
+    out = pathlib.Path(path)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"{option} {path}: exists and is not a directory")
+    if not out.exists():
+        parent = out.parent
+        if not parent.is_dir():
+            raise UsageError(f"{option} {path}: folder {parent} does not exist (create it first)")
+        try:
+            out.mkdir()
+        except OSError as exc:
+            raise UsageError(f"{option} {path}: cannot create it: {exc.strerror or exc}") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise UsageError(f"{option} {path}: not writable")
+    return out
 
 
 def run_demo(args) -> int:
     from .solve_plots import convergence_figure, trajectory_figure
     from ..problems import square_loops
 
+    out = make_out_dir("--out", args.out)
     prob = square_loops(args.loops, args.points_per_side, sigma=0.01, seed=0)
     print(f"model problem: {args.loops} loops x {args.points_per_side} points per side = {prob.poses} poses "
           f"(sigma 0.01, seed 0), one subdomain per loop", flush=True)
-    progress = (lambda name: print(f"running {name} ...", file=sys.stderr, flush=True)) if _tty() else None
-    rows = compare_rows(prob.graph, prob.initial, ours=("gdsw", "one-level", "block-jacobi", "none"),
-                        gtsam_solvers=("gtsam-lm", "gtsam-gn"), method="gn", partition="segments",
-                        subdomains=args.loops, progress=progress)
-    print_table(rows)
-    out = pathlib.Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    gdsw = next(r for r in rows if r["solver"].endswith("-gdsw"))
-    traj = trajectory_figure(out / "demo_trajectory.png", prob, gdsw["values"], subdomains=args.loops)
-    conv = convergence_figure(out / "demo_convergence.png", prob, subdomains=args.loops)
+    with _progress(args, "demo", total=len(DEMO_OURS) + len(DEMO_GTSAM) + len(DEMO_CONVERGENCE)) as progress:
+        rows = compare_rows(prob.graph, prob.initial, ours=DEMO_OURS, gtsam_solvers=DEMO_GTSAM, method="gn",
+                            partition="segments", subdomains=args.loops, progress=progress)
+        _add_accuracy(rows, prob.ground_truth)
+        initial = _accuracy(prob.initial, prob.ground_truth)
+        with progress.suspended():
+            print_table(rows)
+            print(f"initial guess (dead reckoning): ATE {initial['ate_rmse']:.4g} m, "
+                  f"RPE {initial['rpe_rmse']:.4g} m")
+            print(ACCURACY_NOTE, flush=True)
+        gdsw = next(r for r in rows if r["solver"].endswith("-gdsw"))
+        traj = trajectory_figure(out / "demo_trajectory.png", prob, gdsw["values"], subdomains=args.loops)
+        conv = convergence_figure(out / "demo_convergence.png", prob, subdomains=args.loops, names=DEMO_CONVERGENCE,
+                                  progress=progress)
     print(f"wrote {traj} and {conv}")
     return 0
 

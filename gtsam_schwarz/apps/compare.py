@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+import warnings
 
 import gtsam
 
@@ -40,20 +41,27 @@ def _gtsam_params(name: str, iterative_tol: float | None = None):
 
 
 def run_gtsam(graph, initial, name: str = "gtsam-lm", max_iterations: int = 100,
-              iterative_tol: float | None = None) -> dict:
+              iterative_tol: float | None = None, iteration_hook=None) -> dict:
     """GTSAM's optimizer ``name`` with its default parameters (multifrontal Cholesky; PCG with
     block-Jacobi; SubgraphSolver); ``iterative_tol`` sets the iterative solvers' CG tolerance
-    (e.g. :data:`ITERATIVE_TOL`, ours, for a comparison at equal final error)."""
+    (e.g. :data:`ITERATIVE_TOL`, ours, for a comparison at equal final error); ``iteration_hook``
+    is GTSAM's ``iterationHook`` (called with iteration, error before, error after).
+
+    A failure (GTSAM's exceptions are RuntimeErrors) is a row with ``failed`` (its first line, for
+    one-line table cells) and ``failed_message`` (the whole message)."""
     params, cls = _gtsam_params(name, iterative_tol)
     params.setMaxIterations(max_iterations)
+    if iteration_hook is not None:
+        params.iterationHook = iteration_hook
     t = time.perf_counter()
     opt = cls(graph, initial, params)
     try:
         values = opt.optimize()
     except RuntimeError as exc:  # e.g. GTSAM's IndeterminantLinearSystemException
-        first = next((line.strip() for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
+        message = str(exc).strip() or type(exc).__name__
+        first = next(line.strip() for line in message.splitlines() if line.strip())
         return {"solver": name, "final_error": float("nan"), "iterations": int(opt.iterations()),
-                "seconds": time.perf_counter() - t, "values": None, "failed": first}
+                "seconds": time.perf_counter() - t, "values": None, "failed": first, "failed_message": message}
     seconds = time.perf_counter() - t
     return {"solver": name, "final_error": float(graph.error(values)), "iterations": int(opt.iterations()),
             "seconds": seconds, "values": values}
@@ -63,7 +71,9 @@ def run_ours(graph, initial, params: SchwarzParams) -> dict:
     """Our optimizer with ``params``; the row carries the summary and the time split."""
     t = time.perf_counter()
     opt = SchwarzOptimizer(graph, initial, params)
-    values = opt.optimize()
+    with warnings.catch_warnings():  # the row reports converged / stop_reason itself
+        warnings.simplefilter("ignore", RuntimeWarning)
+        values = opt.optimize()
     seconds = time.perf_counter() - t
     s = opt.summary()
     split = {k: sum(h["seconds"][k] for h in opt.history) for k in ("linearize", "export", "setup", "cg", "update")}
@@ -72,4 +82,4 @@ def run_ours(graph, initial, params: SchwarzParams) -> dict:
             "cg_iterations": s["cg_iterations"], "subdomains": s["subdomains"], "coarse_size": s["coarse_size"],
             "converged": s["converged"], "stop_reason": s["stop_reason"], "initial_error": s["initial_error"],
             "seconds": seconds, "split": split, "values": values, "history": opt.history,
-            "decomposition": opt.decomposition}
+            "decomposition": opt.decomposition, "linear_solver": s["linear_solver"], "anchored": s["anchored"]}

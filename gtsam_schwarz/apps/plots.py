@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import os
 
 import gtsam
 import matplotlib
@@ -23,14 +24,28 @@ LABELS = {"none": "no preconditioner", "one-level": "one-level Schwarz", "gdsw-n
           "gdsw": "GDSW"}
 
 
-def save(fig, path) -> str:
-    """Render into memory, then write atomically (temp file beside ``path`` + os.replace)."""
+PLOT_FORMATS = ("png", "pdf", "svg")  # chosen by the file's extension
+
+
+def plot_format(path) -> str:
+    """The image format of ``path`` from its extension (png, pdf or svg); ValueError for any other."""
+    suffix = os.path.splitext(os.fspath(path))[1].lower().lstrip(".")
+    if suffix not in PLOT_FORMATS:
+        raise ValueError(f"{os.fspath(path)}: unsupported plot format "
+                         f"{('.' + suffix) if suffix else '(no extension)'}; use .png, .pdf or .svg")
+    return suffix
+
+
+def save(fig, path, *, parents: bool = True) -> str:
+    """Render into memory in the format of ``path``'s extension (:func:`plot_format`), then write
+    atomically (temp file beside ``path`` + os.replace); ``parents=False``: no folder is created."""
+    fmt = plot_format(path)
     buf = io.BytesIO()
     try:
-        fig.savefig(buf, format="png", dpi=130, bbox_inches="tight")
+        fig.savefig(buf, format=fmt, dpi=130, bbox_inches="tight")
     finally:
         plt.close(fig)
-    atomic_write(path, buf.getvalue(), parents=True)
+    atomic_write(path, buf.getvalue(), parents=parents)
     return str(path)
 
 

@@ -24,7 +24,7 @@ from scipy.sparse.csgraph import breadth_first_order, connected_components
 
 from .atomic import atomic_write
 
-__all__ = ["GraphFileError", "LoadedGraph", "load_graph", "write_g2o", "QUATERNION_TOLERANCE"]
+__all__ = ["GraphFileError", "LoadedGraph", "load_graph", "read_vertices", "write_g2o", "QUATERNION_TOLERANCE"]
 
 #: quaternions whose norm is within this of 1 are normalized; farther ones are refused
 QUATERNION_TOLERANCE = 1e-3
@@ -307,6 +307,16 @@ def _first_line_of(parsed: _Parsed, pose: int) -> int:
     if pose in parsed.vertex_line:
         return parsed.vertex_line[pose]
     return next(line for (i, j), line in zip(parsed.edge_ids, parsed.edge_lines) if pose in (i, j))
+
+
+def read_vertices(path) -> tuple[int, np.ndarray, np.ndarray]:
+    """The VERTEX records of a g2o / TORO file: (dimension, ids sorted, values (x y θ) or
+    (x y z qx qy qz qw) per id), with the loader's line-numbered errors; edges are not needed."""
+    path = os.fspath(path)
+    parsed = _parse_lines(path, _read_text(path))
+    ids = np.array(parsed.vertex_ids, dtype=np.uint64)
+    order = np.argsort(ids, kind="stable")
+    return parsed.dim, ids[order], np.array(parsed.vertex_values, dtype=float).reshape(len(ids), -1)[order]
 
 
 def load_graph(path, *, add_prior: bool = True, prior_sigma: float = 1e-3, strict: bool = False) -> LoadedGraph:

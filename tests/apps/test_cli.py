@@ -50,7 +50,8 @@ def test_synth_refuses_to_overwrite_without_force(small_g2o):
 
 def test_solve_json_matches_gtsam_lm(small_g2o, tmp_path):
     out, plot = tmp_path / "opt.g2o", tmp_path / "opt.png"
-    proc = cli("solve", small_g2o, "--json", "--subdomains", 4, "--partition", "segments", "-o", out, "--plot", plot)
+    proc = cli("solve", small_g2o, "--json", "--preconditioner", "gdsw", "--subdomains", 4, "--partition", "segments",
+               "-o", out, "--plot", plot)
     assert proc.returncode == 0, proc.stderr
     report = json.loads(proc.stdout)
     for key in ("poses", "edges", "dimension", "method", "preconditioner", "subdomains", "overlap", "iterations",
@@ -59,6 +60,7 @@ def test_solve_json_matches_gtsam_lm(small_g2o, tmp_path):
     assert set(report["seconds"]) >= {"total", "linearize", "setup", "cg"}
     assert report["method"] == "lm" and report["preconditioner"] == "gdsw" and report["subdomains"] == 4
     assert report["converged"] and report["final_error"] < report["initial_error"]
+    assert report["linear_solver"] == {"requested": "gdsw", "used": "gdsw", "reason": ""}
     loaded = load_graph(small_g2o)
     ref = gtsam.LevenbergMarquardtOptimizer(loaded.graph, loaded.initial, gtsam.LevenbergMarquardtParams()).optimize()
     assert report["final_error"] <= loaded.graph.error(ref) * (1 + 1e-6)
@@ -136,3 +138,13 @@ def test_solve_3d_file_every_preconditioner(pre):
     loaded = load_graph(path)
     ref = gtsam.LevenbergMarquardtOptimizer(loaded.graph, loaded.initial, gtsam.LevenbergMarquardtParams()).optimize()
     assert report["final_error"] <= loaded.graph.error(ref) * (1 + 1e-6)
+
+
+def test_default_linear_solver_is_automatic_and_says_why(small_g2o):
+    proc = cli("solve", small_g2o, "--json", "-q")
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout)
+    assert report["preconditioner"] == "auto" and report["linear_solver"]["requested"] == "auto"
+    assert report["linear_solver"]["used"] in ("direct", "gdsw") and "predicted" in report["linear_solver"]["reason"]
+    human = cli("solve", small_g2o, "-q")
+    assert f"linear solver: {report['linear_solver']['used']} (auto: nnz(L)" in human.stdout

@@ -1,0 +1,517 @@
+"""Chordal initialization of pose graphs: R = proj_SO(d)(argmin Σ w_ij‖R_j − R_i R_ij‖_F²), then
+p = argmin Σ ‖p_j − p_i − R_i t_ij‖²_W (g2o/GTSAM: x_j = x_i ∘ z_ij); pure numpy/scipy, no gtsam.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse import csgraph
+from scipy.sparse.linalg import splu
+
+from ..krylov import pcg
+
+__all__ = ["ChordalResult", "chordal_initialization", "pose2_from", "project_to_so"]
+
+SOLVERS = ("cg", "direct")
+PRECONDITIONERS = ("schwarz", "tree", "jacobi", "none")
+ROTATION_METHODS = ("chordal", "lago")
+TRANSLATION_WEIGHTS = ("information", "diagonal", "isotropic")
+
+
+@dataclass
+class ChordalResult:
+    """Initial poses x_i = (R_i, p_i): ``rotations`` (n,d,d), ``positions`` (n,d); ``info`` holds
+    CG iterations per system, seconds, anchors and components."""
+
+    rotations: np.ndarray
+    positions: np.ndarray
+    info: dict = field(default_factory=dict)
+
+
+def pose2_from(result: ChordalResult) -> np.ndarray:
+    """(n,3) rows (x, y, θ) with θ = atan2(R₁₀, R₀₀) of a 2D :class:`ChordalResult`."""
+    R = np.asarray(result.rotations)
+    if R.shape[1:] != (2, 2):
+        raise ValueError(f"pose2_from needs 2D rotations (n,2,2), got {R.shape}")
+    theta = np.arctan2(R[:, 1, 0], R[:, 0, 0])
+    return np.column_stack([result.positions, theta])
+
+
+def project_to_so(M: np.ndarray) -> np.ndarray:
+    """Nearest rotations argmin_{R∈SO(d)} ‖R − M_k‖_F = U diag(1,…,det UVᵀ) Vᵀ, M (k,d,d)."""
+    U, _, Vt = np.linalg.svd(M)
+    det = np.linalg.det(U @ Vt)
+    U = U.copy()
+    U[:, :, -1] *= np.where(det < 0, -1.0, 1.0)[:, None]
+    return U @ Vt
+
+
+# ----------------------------------------------------------------------------------------------
+# input handling
+
+
+def _edge_weights(information, m: int, d: int, mode: str = "information") -> tuple[np.ndarray, np.ndarray]:
+    """Rotation weights w_ij (m,) = tr(Ω_RR)/dim and translation weights Ω_tt (m,d,d) in the frame
+    of the measurement (GTSAM tangent order: Pose2 (x,y,θ), Pose3 (ω,v)); ``mode`` "diagonal" or
+    "isotropic" (tr(Ω_tt)/d · I) drop the translation correlations."""
+    w_rot, W_t = _edge_information(information, m, d)
+    if mode == "diagonal":
+        W_t = W_t * np.eye(d)
+    elif mode == "isotropic":
+        W_t = (np.trace(W_t, axis1=1, axis2=2) / d)[:, None, None] * np.eye(d)
+    elif mode != "information":
+        raise ValueError(f"unknown translation_weights {mode!r}; "
+                         f"choose one of {', '.join(TRANSLATION_WEIGHTS)}")
+    return w_rot, W_t
+
+
+def _edge_information(information, m: int, d: int) -> tuple[np.ndarray, np.ndarray]:
+    """(w_rot, Ω_tt) from None (unit), (m,) weights, (dof,dof) or (m,dof,dof) information."""
+    dof = 3 if d == 2 else 6
+    if information is None:
+        return np.ones(m), np.broadcast_to(np.eye(d), (m, d, d)).copy()
+    info = np.asarray(information, dtype=float)
+    if info.ndim == 1:  # scalar weight per edge
+        if info.shape != (m,):
+            raise ValueError(f"scalar weights must have shape ({m},), got {info.shape}")
+        return info.copy(), info[:, None, None] * np.eye(d)
+    if info.shape == (dof, dof):
+        info = np.broadcast_to(info, (m, dof, dof))
+    if info.shape != (m, dof, dof):
+        raise ValueError(f"information must be (m,{dof},{dof}) (or (m,) weights), got {info.shape}")
+    if d == 2:
+        w_rot, W_t = info[:, 2, 2].copy(), info[:, :2, :2].copy()
+    else:
+        w_rot, W_t = np.trace(info[:, :3, :3], axis1=1, axis2=2) / 3.0, info[:, 3:, 3:].copy()
+    W_t = 0.5 * (W_t + np.swapaxes(W_t, 1, 2))
+    return w_rot, W_t
+
+
+def _as_pose(pose, d: int) -> tuple[np.ndarray, np.ndarray]:
+    """(R, p) from None (identity), a pair (R, p), a (d+1)×(d+1) homogeneous matrix or, for d = 2,
+    (x, y, θ)."""
+    if pose is None:
+        return np.eye(d), np.zeros(d)
+    if isinstance(pose, (tuple, list)) and len(pose) == 2:
+        R, p = np.asarray(pose[0], dtype=float), np.asarray(pose[1], dtype=float)
+    else:
+        a = np.asarray(pose, dtype=float)
+        if a.shape == (d + 1, d + 1):
+            R, p = a[:d, :d], a[:d, d]
+        elif d == 2 and a.shape == (3,):
+            c, s = np.cos(a[2]), np.sin(a[2])
+            R, p = np.array([[c, -s], [s, c]]), a[:2]
+        else:
+            raise ValueError(f"cannot read an anchor pose of dimension {d} from shape {a.shape}")
+    if R.shape != (d, d) or p.shape != (d,):
+        raise ValueError(f"anchor pose must be (R {d}x{d}, p {d}), got {R.shape}, {p.shape}")
+    if not np.allclose(R.T @ R, np.eye(d), atol=1e-8) or np.linalg.det(R) <= 0:
+        raise ValueError("anchor rotation is not in SO(d)")
+    return R, p
+
+
+def _anchors(n: int, edges: np.ndarray, anchor, anchor_pose, d: int):
+    """One anchor per connected component (the given one for its component, else the component's
+    lowest index) and the fixed (R, p) of each."""
+    adj = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    ncomp, labels = csgraph.connected_components(adj, directed=False)
+    if np.ndim(anchor) == 0:
+        a = int(anchor)
+        if not 0 <= a < n:
+            raise ValueError(f"anchor {a} out of range 0..{n - 1}")
+        _, first = np.unique(labels, return_index=True)  # lowest index of every component
+        first[labels[a]] = a
+        anchors = first
+        R_fix = np.broadcast_to(np.eye(d), (ncomp, d, d)).copy()
+        p_fix = np.zeros((ncomp, d))
+        R_fix[labels[a]], p_fix[labels[a]] = _as_pose(anchor_pose, d)
+    else:
+        anchors = np.asarray(anchor, dtype=np.int64).ravel()
+        if anchors.size and (anchors.min() < 0 or anchors.max() >= n):
+            raise ValueError("anchor index out of range")
+        if anchors.size != ncomp or np.unique(labels[anchors]).size != ncomp:
+            raise ValueError(f"need exactly one anchor per connected component ({ncomp} components)")
+        if anchor_pose is None:
+            poses = [None] * anchors.size
+        elif isinstance(anchor_pose, (tuple, list)) and len(anchor_pose) == anchors.size:
+            poses = list(anchor_pose)
+        else:
+            raise ValueError("with several anchors give anchor_pose as a list with one pose per anchor")
+        pairs = [_as_pose(p, d) for p in poses]  # one per component, not per pose
+        R_fix = np.array([r for r, _ in pairs]).reshape(-1, d, d)
+        p_fix = np.array([p for _, p in pairs]).reshape(-1, d)
+    return anchors, R_fix, p_fix, ncomp
+
+
+# ----------------------------------------------------------------------------------------------
+# linear algebra
+
+
+def _normal_equations(n: int, d: int, i, j, S, W, c=None):
+    """A, b of min Σ ‖x_j − S_ij x_i − c_ij‖²_W (blocks d×d): A_ii += SᵀWS, A_jj += W,
+    A_ij −= SᵀW, A_ji −= WS; b_i −= SᵀWc, b_j += Wc."""
+    St = np.swapaxes(S, 1, 2)
+    StW = St @ W
+    blocks = np.concatenate([StW @ S, W, -StW, -(W @ S)])
+    rows = np.concatenate([i, j, i, j])
+    cols = np.concatenate([i, j, j, i])
+    a = np.arange(d)
+    r = np.broadcast_to(rows[:, None, None] * d + a[None, :, None], blocks.shape)
+    k = np.broadcast_to(cols[:, None, None] * d + a[None, None, :], blocks.shape)
+    A = sp.csr_matrix((blocks.ravel(), (r.ravel(), k.ravel())), shape=(n * d, n * d))
+    b = np.zeros((n, d))
+    if c is not None:
+        Wc = np.einsum("kab,kb->ka", W, c)
+        np.add.at(b, i, -np.einsum("kab,kb->ka", StW, c))
+        np.add.at(b, j, Wc)
+    return A, b.reshape(n * d)
+
+
+def _spanning_tree(n: int, edges: np.ndarray, weight: np.ndarray, anchors: np.ndarray):
+    """Edge ids of a BFS spanning forest grown from the anchors (heaviest edge per node pair) and
+    the non-root nodes in BFS (root-first) order."""
+    i, j = edges[:, 0], edges[:, 1]
+    lo, hi = np.minimum(i, j), np.maximum(i, j)
+    by_pair = np.lexsort((-weight, hi, lo))
+    key = lo[by_pair] * n + hi[by_pair]
+    keep = by_pair[np.r_[True, key[1:] != key[:-1]]] if len(key) else by_pair
+    # a virtual root n joined to every anchor makes one tree out of the forest
+    na = anchors.size
+    u = np.concatenate([lo[keep], np.full(na, n)])
+    v = np.concatenate([hi[keep], anchors])
+    G = sp.csr_matrix((np.ones(u.size), (u, v)), shape=(n + 1, n + 1))
+    G = (G + G.T).tocsr()
+    order, pred = csgraph.breadth_first_order(G, n, directed=False, return_predecessors=True)
+    child = order[1:].astype(np.int64)
+    parent = pred[child].astype(np.int64)
+    real = parent != n
+    # edge id of each tree pair (parent, child) by a sorted lookup of the kept pairs
+    pair = lo[keep] * n + hi[keep]
+    by_key = np.argsort(pair)
+    want = np.minimum(parent[real], child[real]) * n + np.maximum(parent[real], child[real])
+    eid = keep[by_key[np.searchsorted(pair[by_key], want)]]
+    return eid, child
+
+
+class _Reduced:
+    """Anchored system A_ff x_f = b_f − A_fa x_a over the free nodes; unknown blocks of d."""
+
+    def __init__(self, n: int, d: int, anchors: np.ndarray):
+        self.n, self.d = n, d
+        fixed_node = np.zeros(n, dtype=bool)
+        fixed_node[anchors] = True
+        self.free_nodes = np.flatnonzero(~fixed_node)
+        self.node_position = np.full(n, -1, dtype=np.int64)
+        self.node_position[self.free_nodes] = np.arange(self.free_nodes.size)
+        self.free = (self.free_nodes[:, None] * d + np.arange(d)).ravel()
+        self.fixed = (anchors[:, None] * d + np.arange(d)).ravel()
+
+    def restrict(self, A):
+        A = A.tocsr()
+        rows = A[self.free]
+        return rows[:, self.free].tocsr(), rows[:, self.fixed].tocsr()
+
+    def expand(self, x_free, x_fixed):
+        x = np.zeros((self.n * self.d,) + x_free.shape[1:])
+        x[self.free] = x_free
+        x[self.fixed] = x_fixed
+        return x
+
+
+def _block_expand(nodes: np.ndarray, d: int) -> np.ndarray:
+    return (nodes[:, None] * d + np.arange(d)).ravel()
+
+
+def _tree_solver(red: _Reduced, A_tree_ff, order: np.ndarray):
+    """Exact solve with the spanning-forest part of A: eliminating children before parents
+    (reverse BFS order) gives a zero-fill factorization, O(n) to build and apply."""
+    nodes = red.node_position[order[::-1]]
+    perm = _block_expand(nodes[nodes >= 0], red.d)
+    T = A_tree_ff[perm][:, perm].tocsc()
+    lu = splu(T, permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+
+    def apply(r):
+        z = np.empty_like(r)
+        z[perm] = lu.solve(r[perm])
+        return z
+
+    return apply
+
+
+def _block_jacobi(A_ff, d: int):
+    """Apply of the inverse d×d diagonal blocks of A_ff."""
+    C = A_ff.tocoo()
+    same = (C.row // d) == (C.col // d)
+    nb = A_ff.shape[0] // d
+    D = np.zeros((nb, d, d))
+    np.add.at(D, (C.row[same] // d, C.row[same] % d, C.col[same] % d), C.data[same])
+    Dinv = np.linalg.inv(D)
+
+    def apply(r):
+        return np.einsum("kab,kb->ka", Dinv, r.reshape(nb, d)).ravel()
+
+    return apply
+
+
+class _SchwarzLayout:
+    """Aggregates (Voronoi cells of random seeds, by hop distance) of the free-node graph and
+    their overlapping extensions by ``overlap`` layers of neighbours."""
+
+    def __init__(self, red: _Reduced, i, j, aggregate_size: int, overlap: int, seed: int):
+        nf = red.free_nodes.size
+        u, v = red.node_position[i], red.node_position[j]
+        keep = (u >= 0) & (v >= 0)
+        G = sp.csr_matrix((np.ones(int(keep.sum())), (u[keep], v[keep])), shape=(nf, nf))
+        G = (G + G.T).tocsr()
+        rng = np.random.default_rng(seed)
+        nagg = max(1, nf // max(1, int(aggregate_size)))
+        seeds = np.sort(rng.choice(nf, size=nagg, replace=False))
+        _, _, src = csgraph.dijkstra(G, directed=False, indices=seeds, unweighted=True,
+                                     min_only=True, return_predecessors=True)
+        label = np.searchsorted(seeds, src)
+        lost = src < 0  # in a part of the graph without a seed: one aggregate per such part
+        if np.any(lost):
+            _, comp = csgraph.connected_components(G, directed=False)
+            _, comp_id = np.unique(comp[lost], return_inverse=True)
+            label[lost] = nagg + comp_id
+        _, label = np.unique(label, return_inverse=True)
+        self.label, self.count = label, int(label.max()) + 1
+        # (subdomain, node) pairs of the overlapping subdomains
+        sub, node = label, np.arange(nf)
+        G.data[:] = 1.0
+        for _ in range(int(overlap)):  # each layer vectorized over all (subdomain, node) pairs
+            by_node = sp.csr_matrix((np.ones(node.size), (node, np.arange(node.size))),
+                                    shape=(nf, node.size))
+            hit = (G @ by_node).tocoo()  # hit[w, p]: w is a neighbour of the node of pair p
+            pairs = np.unique(np.concatenate([sub.astype(np.int64) * nf + node,
+                                              sub[hit.col].astype(np.int64) * nf + hit.row]))
+            sub, node = pairs // nf, pairs % nf
+        self.sub, self.node = sub, node
+
+
+def _schwarz(A_ff, layout: _SchwarzLayout, d: int, basis: np.ndarray):
+    """Two-level overlapping Schwarz, balancing form M⁻¹ = Q + (I − QA) Σ R_kᵀA_k⁻¹R_k (I − AQ)
+    with Q = P (PᵀAP)⁻¹ Pᵀ, P the aggregates times per-node near-null blocks ``basis`` (nf,d,d)."""
+    nf = A_ff.shape[0] // d
+    k = layout.node.size
+    Rm = sp.csr_matrix((np.ones(k * d), (np.arange(k * d), _block_expand(layout.node, d))),
+                       shape=(k * d, nf * d))
+    Ab = (Rm @ A_ff @ Rm.T).tocoo()
+    subx = np.repeat(layout.sub, d)
+    same = subx[Ab.row] == subx[Ab.col]
+    Ab = sp.csc_matrix((Ab.data[same], (Ab.row[same], Ab.col[same])), shape=Ab.shape)
+    local = splu(Ab, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    RmT = Rm.T.tocsr()
+    rows = np.broadcast_to(np.arange(nf)[:, None, None] * d + np.arange(d)[None, :, None], basis.shape)
+    cols = np.broadcast_to(layout.label[:, None, None] * d + np.arange(d)[None, None, :], basis.shape)
+    P = sp.csr_matrix((basis.ravel(), (rows.ravel(), cols.ravel())), shape=(nf * d, layout.count * d))
+    PT = P.T.tocsr()
+    coarse = splu((PT @ A_ff @ P).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                  options={"SymmetricMode": True})
+
+    def Q(x):
+        return P @ coarse.solve(PT @ x)
+
+    def apply(r):
+        z = Q(r)
+        s = RmT @ local.solve(Rm @ (r - A_ff @ z))
+        return z + s - Q(A_ff @ s)
+
+    return apply
+
+
+def _direct_solve(A, B):
+    try:
+        from sksparse.cholmod import cholesky  # optional, faster
+
+        return cholesky(A.tocsc())(B)
+    except ImportError:
+        lu = splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                  options={"SymmetricMode": True})
+        return lu.solve(np.asarray(B))
+
+
+# ----------------------------------------------------------------------------------------------
+
+
+# Options. information: None (unit), (m,) weights, (dof,dof) or (m,dof,dof) in GTSAM tangent order
+# (Pose2 (x,y,θ), Pose3 (ω,v)); rotation weight tr(Ω_RR)/dim, translation weight Ω_tt in the frame
+# R_i R_ij (translation_weights "diagonal"/"isotropic" drop its correlations, for degenerate Ω_tt).
+# anchor: an index (anchors its component; every other component is anchored at its lowest index)
+# or one index per component; anchor_pose: None (identity), (R, p), a homogeneous matrix or, in 2D,
+# (x, y, θ); a list of those with a list of anchors. solver "cg": the project's PCG to relative
+# residual tol, preconditioned by "schwarz" (two-level overlapping Schwarz on aggregates of about
+# aggregate_size poses, overlap layers), "tree" (exact spanning-tree solve), "jacobi" or "none";
+# solver "direct": sparse Cholesky (CHOLMOD if installed, else SuperLU). rotation "lago" (2D only):
+# angles with 2π wraps regularized along the BFS spanning tree instead of the chordal relaxation.
+# blas_threads: BLAS threads while solving (None: leave the process setting), as the optimizer's.
+def chordal_initialization(n: int, edges, R_meas, t_meas, information=None, anchor=0,
+                           anchor_pose=None, solver: str = "cg", *, preconditioner: str = "schwarz",
+                           rotation: str = "chordal", tol: float = 1e-10, maxiter: int | None = None,
+                           translation_weights: str = "information", aggregate_size: int = 16,
+                           overlap: int = 1, seed: int = 0, blas_threads: int | None = 1) -> ChordalResult:
+    """Anchored R = proj_SO(d)(argmin_X Σ w_ij‖X_j − X_i R_ij‖_F²), then
+    p = argmin Σ ‖p_j − p_i − R_i t_ij‖²_W; returns rotations (n,d,d), positions (n,d), info."""
+    args = dict(locals())
+    try:
+        from threadpoolctl import threadpool_limits  # a project dependency; optional here
+    except ImportError:
+        blas_threads = None
+    if blas_threads is None:
+        return _chordal(**args)
+    with threadpool_limits(limits=blas_threads, user_api="blas"):
+        return _chordal(**args)
+
+
+def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver, preconditioner,
+             rotation, tol, maxiter, translation_weights, aggregate_size, overlap, seed, blas_threads):
+    """Body of :func:`chordal_initialization` (BLAS threads already limited)."""
+    t0 = time.perf_counter()
+    if solver not in SOLVERS:
+        raise ValueError(f"unknown solver {solver!r}; choose one of {', '.join(SOLVERS)}")
+    if preconditioner is None:
+        preconditioner = "none"
+    if preconditioner not in PRECONDITIONERS:
+        raise ValueError(f"unknown preconditioner {preconditioner!r}; "
+                         f"choose one of {', '.join(PRECONDITIONERS)}")
+    if rotation not in ROTATION_METHODS:
+        raise ValueError(f"unknown rotation method {rotation!r}; choose one of {', '.join(ROTATION_METHODS)}")
+    n = int(n)
+    edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    R_meas = np.asarray(R_meas, dtype=float)
+    t_meas = np.asarray(t_meas, dtype=float)
+    m = edges.shape[0]
+    if R_meas.ndim != 3 or R_meas.shape[0] != m or R_meas.shape[1] != R_meas.shape[2]:
+        raise ValueError(f"R_meas must be (m,d,d) with m = {m}, got {R_meas.shape}")
+    d = R_meas.shape[1]
+    if d not in (2, 3):
+        raise ValueError(f"only d = 2 or 3 are supported, got {d}")
+    if t_meas.shape != (m, d):
+        raise ValueError(f"t_meas must be ({m},{d}), got {t_meas.shape}")
+    if rotation == "lago" and d != 2:
+        raise ValueError("rotation='lago' is only defined for 2D pose graphs")
+    if n <= 0:
+        raise ValueError("need at least one pose")
+    if m and (edges.min() < 0 or edges.max() >= n):
+        raise ValueError(f"edge index out of range 0..{n - 1}")
+    if np.any(edges[:, 0] == edges[:, 1]):
+        raise ValueError("self-loop edges (i == j) are not supported")
+    w_rot, W_loc = _edge_weights(information, m, d, translation_weights)
+    if np.any(~np.isfinite(w_rot)) or np.any(w_rot <= 0):
+        raise ValueError("rotation weights must be positive and finite")
+    if np.any(~np.isfinite(W_loc)) or (m and np.linalg.eigvalsh(W_loc)[:, 0].min() <= 0):
+        raise ValueError("translation information blocks must be positive definite and finite")
+    i, j = edges[:, 0], edges[:, 1]
+    anchors, R_fix, p_fix, ncomp = _anchors(n, edges, anchor, anchor_pose, d)
+    cg = solver == "cg"
+    tree_eid, tree_order = _spanning_tree(n, edges, w_rot, anchors)
+    red_d, red_1 = _Reduced(n, d, anchors), _Reduced(n, 1, anchors)
+    layout = None
+    if cg and preconditioner == "schwarz" and red_1.free_nodes.size:
+        layout = _SchwarzLayout(red_1, i, j, aggregate_size, overlap, seed)
+    info: dict = {"n": n, "m": m, "d": d, "components": int(ncomp), "anchors": anchors.tolist(),
+                  "solver": solver, "preconditioner": preconditioner if cg else None,
+                  "rotation": rotation}
+    if layout is not None:
+        info["aggregates"] = layout.count
+
+    def tree_of(red, S, W):
+        A_T, _ = _normal_equations(n, red.d, i[tree_eid], j[tree_eid], S[tree_eid], W[tree_eid])
+        return _tree_solver(red, red.restrict(A_T)[0], tree_order)
+
+    def solve(red, A, b, x_fixed, S, W, basis=None):
+        """Anchored solve for each column of b; returns the full x and the CG infos."""
+        shape = (red.free.size,) + x_fixed.shape[1:]
+        if red.free.size == 0:
+            return red.expand(np.zeros(shape), x_fixed), []
+        A_ff, A_fa = red.restrict(A)
+        B = (b[red.free] - A_fa @ x_fixed).reshape(red.free.size, -1)
+        if not cg:
+            return red.expand(np.asarray(_direct_solve(A_ff, B)).reshape(shape), x_fixed), []
+        if preconditioner == "tree":
+            M = tree_of(red, S, W)
+        elif preconditioner == "jacobi":
+            M = _block_jacobi(A_ff, red.d)
+        elif preconditioner == "schwarz":
+            if basis is None:  # near-null space of an (unsigned) block Laplacian: constants
+                basis = np.broadcast_to(np.eye(red.d), (red.free_nodes.size, red.d, red.d))
+            elif callable(basis):
+                basis = basis(A_ff, B)
+            M = _schwarz(A_ff, layout, red.d, basis)
+        else:
+            M = None
+        X = np.zeros_like(B)
+        infos = []
+        for k in range(B.shape[1]):  # d ≤ 3 right-hand sides
+            X[:, k], cg_info = pcg(A_ff, B[:, k], M=M, tol=tol, maxiter=maxiter)
+            infos.append(cg_info)
+        return red.expand(X.reshape(shape), x_fixed), infos
+
+    # ---- rotations ------------------------------------------------------------------------
+    t1 = time.perf_counter()
+    if rotation == "chordal":
+        # unknown block X_i = R_iᵀ: ‖R_j − R_i R_ij‖_F = ‖X_j − R_ijᵀ X_i‖_F, d right-hand sides
+        # In 2D the second column is the first turned by 90° (J commutes with SO(2)): solving for
+        # X_i e₀ ≈ (cos θ_i, −sin θ_i) alone is LAGO's relaxation on (cos θ, sin θ).
+        S = np.swapaxes(R_meas, 1, 2)
+        W = w_rot[:, None, None] * np.eye(d)
+        A, _ = _normal_equations(n, d, i, j, S, W)
+        cols = 1 if d == 2 else d
+        X_fix = np.swapaxes(R_fix, 1, 2).reshape(-1, d)[:, :cols]
+
+        def full_blocks(X):
+            """(N·d, cols) → X_i blocks (N,d,d), completing the 2D second column (−x₁, x₀)."""
+            X = X.reshape(-1, d, cols)
+            if d == 3:
+                return X
+            return np.concatenate([X, np.stack([-X[:, 1, 0], X[:, 0, 0]], -1)[:, :, None]], 2)
+
+        def rotation_basis(_A_ff, B):
+            """Near-null blocks X_i ≈ R_iᵀ of the connection Laplacian, from the tree solve."""
+            T = tree_of(red_d, S, W)
+            Xt = full_blocks(np.column_stack([T(B[:, k]) for k in range(cols)]))
+            return np.swapaxes(project_to_so(np.swapaxes(Xt, 1, 2)), 1, 2)
+
+        X, infos = solve(red_d, A, np.zeros((n * d, cols)), X_fix, S, W, rotation_basis)
+        rotations = project_to_so(np.swapaxes(full_blocks(X), 1, 2))
+    else:  # LAGO: θ_j − θ_i = δ_ij + 2πk_ij, k_ij from the angles composed along the spanning tree
+        delta = np.arctan2(R_meas[:, 1, 0], R_meas[:, 0, 0])
+        S = np.ones((m, 1, 1))
+        W = w_rot[:, None, None]
+        th_fix = np.arctan2(R_fix[:, 1, 0], R_fix[:, 0, 0])
+        A_T, b_T = _normal_equations(n, 1, i[tree_eid], j[tree_eid], S[tree_eid], W[tree_eid],
+                                     delta[tree_eid, None])
+        A_T_ff, A_T_fa = red_1.restrict(A_T)
+        theta_tree = red_1.expand(_tree_solver(red_1, A_T_ff, tree_order)(b_T[red_1.free] - A_T_fa @ th_fix),
+                                  th_fix)
+        k = np.round((theta_tree[j] - theta_tree[i] - delta) / (2 * np.pi))
+        A, b = _normal_equations(n, 1, i, j, S, W, (delta + 2 * np.pi * k)[:, None])
+        theta, infos = solve(red_1, A, b, th_fix, S, W)
+        c, s = np.cos(theta), np.sin(theta)
+        rotations = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+        info["lago_wraps"] = int(np.count_nonzero(k))
+    info["rotation_iterations"] = [c_.iterations for c_ in infos]
+    info["rotation_converged"] = all(c_.converged for c_ in infos)
+    t2 = time.perf_counter()
+
+    # ---- translations ---------------------------------------------------------------------
+    # the BetweenFactor translation error lives in the frame R_i R_ij: W = (R_i R_ij) Ω_tt (R_i R_ij)ᵀ
+    Rw = rotations[i] @ R_meas
+    W = Rw @ W_loc @ np.swapaxes(Rw, 1, 2)
+    c = np.einsum("kab,kb->ka", rotations[i], t_meas)
+    S = np.broadcast_to(np.eye(d), (m, d, d))
+    A, b = _normal_equations(n, d, i, j, S, W, c)
+    P, infos = solve(red_d, A, b, p_fix.reshape(-1), S, W)
+    positions = P.reshape(n, d)
+    t3 = time.perf_counter()
+    info["translation_iterations"] = [c_.iterations for c_ in infos]
+    info["translation_converged"] = all(c_.converged for c_ in infos)
+    info["setup_seconds"] = t1 - t0
+    info["rotation_seconds"] = t2 - t1
+    info["translation_seconds"] = t3 - t2
+    info["seconds"] = t3 - t0
+    return ChordalResult(rotations=rotations, positions=positions, info=info)
