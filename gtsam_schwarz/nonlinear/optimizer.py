@@ -42,8 +42,7 @@ class SchwarzOptimizer:
         self.params = params if params is not None else SchwarzParams()
         self.nonlinear_params = as_nonlinear(self.params, linear_solver)
         if linearizer is None:
-            from ..linearization.gtsam_export import GtsamLinearizer
-            linearizer = GtsamLinearizer(graph, initial)
+            linearizer = make_linearizer(graph, initial, self.nonlinear_params.linearization)
         self.linearizer = linearizer
         self._state = linearizer.state(initial)
         self._error = linearizer.error(self._state)
@@ -309,3 +308,13 @@ class SchwarzOptimizer:
             return []
         return np.asarray(self.linearizer.keys)[self.anchors].tolist()
 
+
+
+def make_linearizer(graph, initial, name: str = "auto") -> Linearizer:
+    """"gtsam": GTSAM's linearize for every factor; "native": vectorized kernels for Pose2/Pose3 between
+    and prior factors (GTSAM for any other factor, added into the same H, g); "auto": native."""
+    if name == "gtsam":
+        from ..linearization.gtsam_export import GtsamLinearizer
+        return GtsamLinearizer(graph, initial)
+    from ..linearization.native import NativeLinearizer
+    return NativeLinearizer(graph, initial)

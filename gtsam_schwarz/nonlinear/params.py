@@ -15,6 +15,7 @@ from ..schwarz.registry import preconditioner_names
 
 METHODS = ("gn", "lm")
 FORCING = ("none", "eisenstat-walker")
+LINEARIZATIONS = ("auto", "native", "gtsam")
 
 
 def _choice(name, value, allowed):
@@ -88,10 +89,12 @@ class StoppingParams:
     absolute_error_tol: float = 1e-5
     error_tol: float = 0.0
     blas_threads: int | None = 1  # BLAS threads while iterating (None: leave the process setting)
+    linearization: str = "auto"  # auto (native kernels for pose-graph factors, GTSAM for the rest) | native | gtsam
     verbose: bool = False  # a line per linear solve on stdout
     iteration_hook: object = None  # callable(record) after every linear solve, like GTSAM's iterationHook
 
     def _check_stopping(self, method: str):
+        _choice("linearization", self.linearization, LINEARIZATIONS)
         if self.max_iterations < 0:
             raise ValueError(f"max_iterations must be >= 0, got {self.max_iterations}")
         if self.relative_gradient_tol is None:

@@ -1,0 +1,855 @@
+"""Native vectorized linearization of pose graphs: H = Σ JᵀJ and g = Σ JᵀW r with numpy, no gtsam per iteration.
+
+Between/prior factors on Pose2/Pose3 with Gaussian (isotropic, diagonal, full) or robust (Huber,
+Cauchy, Tukey, Geman–McClure, Welsch, DCS, Fair, L2WithDeadZone, TLS; Block reweighting) noise are
+linearized all at once on arrays of poses (kernels in :mod:`.native_kernels`) and gathered straight
+into the graph's fixed CSR block pattern by one precomputed index. Every other factor (landmarks,
+custom factors, constrained or unsupported noise) is linearized by GTSAM and added to the same H, g;
+non-pose variables are retracted by GTSAM. Variables are in sorted key order, as GTSAM's natural
+ordering and :class:`~gtsam_schwarz.linearization.gtsam_export.KeyMap`.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+import scipy.sparse as sp
+
+from ..dd.geometry import VertexGeometry
+from . import native_kernels as nk
+from .base import LinearSystem
+
+__all__ = ["NativeLinearizer", "NativeState"]
+
+
+# ---------------------------------------------------------------------------------------------
+# State
+# ---------------------------------------------------------------------------------------------
+
+class NativeState:
+    """Poses as arrays plus a ``gtsam.Values`` of the other variables; immutable by convention.
+
+    ``pose2`` (4, n2) = (x, y, cos θ, sin θ) rows (see :func:`~.native_kernels.pose2_state`);
+    ``R3`` (n3, 3, 3) world-from-body rotations and ``t3`` (n3, 3) translations; ``others`` the non-pose variables (None if there are none). Each kind's poses are in
+    sorted key order. Caches what was computed at it (the error, other variables' ``gtsam.Values``)."""
+
+    __slots__ = ("pose2", "R3", "t3", "others", "_cache")
+
+    def __init__(self, pose2=None, R3=None, t3=None, others=None):
+        self.pose2, self.R3, self.t3, self.others = pose2, R3, t3, others
+        self._cache = {}
+
+
+# ---------------------------------------------------------------------------------------------
+# Noise models and m-estimators from gtsam
+# ---------------------------------------------------------------------------------------------
+
+_M = gtsam.noiseModel.mEstimator
+_ESTIMATORS = {getattr(_M, name): code for name, code in (
+    ("Null", nk.GAUSSIAN), ("Huber", nk.HUBER), ("Cauchy", nk.CAUCHY), ("Tukey", nk.TUKEY),
+    ("GemanMcClure", nk.GEMAN_MCCLURE), ("Welsch", nk.WELSCH), ("DCS", nk.DCS), ("Fair", nk.FAIR),
+    ("L2WithDeadZone", nk.L2_DEAD_ZONE), ("TruncatedLeastSquares", nk.TLS)) if hasattr(_M, name)}
+
+
+def mestimator_spec(est) -> tuple[int, float] | None:
+    """(code, parameter) of a GTSAM m-estimator that the kernels reproduce, else None.
+
+    The parameter and the reweight scheme are read from its serialization (exact digits); only
+    Block reweighting (GTSAM's default) is native. The formulas are then checked against the
+    estimator's own ``weight``/``loss`` at a few distances, so a changed GTSAM falls back, not drifts."""
+    code = _ESTIMATORS.get(type(est))
+    if code is None:
+        return None
+    if code == nk.DCS:  # GTSAM versions differ in DCS's loss: take the variant this one computes
+        return mestimator_spec_as(est, nk.DCS) or mestimator_spec_as(est, nk.DCS_AGARWAL)
+    return mestimator_spec_as(est, code)
+
+
+def mestimator_spec_as(est, code: int) -> tuple[int, float] | None:
+    """(code, parameter) if the kernels' formulas of ``code`` reproduce ``est``, else None."""
+    try:
+        tokens = est.serialize().split("\n")[1].split()
+        scheme = int(tokens[3])
+        param = float(tokens[4]) if code != nk.GAUSSIAN else 0.0
+    except (IndexError, ValueError, RuntimeError):
+        return None
+    if scheme != int(_M.Base.ReweightScheme.Block):
+        return None
+    scale = param if param > 0 else 1.0
+    base = np.array([0.0, 1e-3, 0.1, 0.5, 0.999, 1.0, 1.001, 1.7, 3.0, 10.0, 1e3])
+    d = np.concatenate([scale * base, np.sqrt(scale) * base[1:]])  # thresholds on d and on d²
+    w, rho = nk.robust_weight_loss(code, np.full_like(d, param), d * d)
+    ref_w = np.array([est.weight(x) for x in d])
+    ref_rho = np.array([est.loss(x) for x in d])
+    ok = np.allclose(w, ref_w, rtol=1e-12, atol=1e-300) and np.allclose(rho, ref_rho, rtol=1e-12, atol=1e-300)
+    return (code, param) if ok else None
+
+
+def noise_spec(noise, d: int) -> tuple[np.ndarray, int, float] | None:
+    """(upper-triangular R, robust code, parameter) of a noise model, None if it is not native
+    (constrained, other dimension, unsupported m-estimator)."""
+    code, param = nk.GAUSSIAN, 0.0
+    if isinstance(noise, gtsam.noiseModel.Robust):
+        est = mestimator_spec(noise.robust())
+        if est is None:
+            return None
+        code, param = est
+        noise = noise.noise()
+    if not isinstance(noise, gtsam.noiseModel.Gaussian) or noise.isConstrained() or noise.dim() != d:
+        return None
+    R = np.asarray(noise.R(), dtype=np.float64)
+    if R.shape != (d, d) or not np.all(np.isfinite(R)):
+        return None
+    return upper_sqrt_information(R[None])[0], code, param
+
+
+def upper_sqrt_information(R: np.ndarray) -> np.ndarray:
+    """(m, d, d) square roots of information (RᵀR = Ω) made upper triangular by QR (kept if already)."""
+    R = np.asarray(R, dtype=np.float64)
+    if not np.any(np.tril(R, -1)):
+        return R
+    return np.triu(np.linalg.qr(R, mode="r"))
+
+
+def sqrt_of_information(info: np.ndarray) -> np.ndarray:
+    """(m, d, d) information Ω → upper-triangular R with RᵀR = Ω (Cholesky, like GTSAM's Gaussian::Information)."""
+    info = np.asarray(info, dtype=np.float64)
+    try:
+        return np.ascontiguousarray(np.linalg.cholesky(info).transpose(0, 2, 1))
+    except np.linalg.LinAlgError:  # semi-definite: symmetric square root, then QR
+        lam, V = np.linalg.eigh(0.5 * (info + info.transpose(0, 2, 1)))
+        return upper_sqrt_information(np.sqrt(np.maximum(lam, 0.0))[:, :, None] * V.transpose(0, 2, 1))
+
+
+def _robust_arrays(robust, m: int) -> nk.Robust | None:
+    """None, ("huber", k) or (codes, params) → per-factor :class:`~.native_kernels.Robust`."""
+    if robust is None:
+        return None
+    code, param = robust
+    if isinstance(code, str):
+        key = code.lower().replace("_", "").replace("-", "")
+        if key not in nk.ROBUST_NAMES:
+            raise ValueError(f"unknown robust kernel {code!r}; known: {sorted(nk.ROBUST_NAMES)}")
+        code = nk.ROBUST_NAMES[key]
+    return nk.Robust.make(code, param, m)
+
+
+def _stack_R(sqrt_information, information, m: int, d: int) -> np.ndarray:
+    """(m, d, d) upper-triangular R from one (d, d) or per-factor (m, d, d) Ω or R."""
+    if (sqrt_information is None) == (information is None):
+        raise ValueError("give exactly one of sqrt_information and information")
+    given = np.asarray(information if information is not None else sqrt_information, dtype=np.float64)
+    one = given.ndim == 2
+    M = given.reshape(1, d, d) if one else given.reshape(m, d, d)
+    R = sqrt_of_information(M) if information is not None else upper_sqrt_information(M)
+    return np.broadcast_to(R, (m, d, d)) if one else R
+
+
+def _pose3_arrays(poses, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) tuple, (n, 4, 4) / (n, 3, 4) matrices or (n, 12) rows [R row-major, t] → R (n,3,3), t (n,3)."""
+    if isinstance(poses, tuple):
+        R, t = poses
+        return np.asarray(R, dtype=np.float64).reshape(-1, 3, 3), np.asarray(t, dtype=np.float64).reshape(-1, 3)
+    P = np.asarray(poses, dtype=np.float64)
+    if P.ndim == 3 and P.shape[1:] in ((4, 4), (3, 4)):
+        return P[:, :3, :3], P[:, :3, 3]
+    if P.ndim == 2 and P.shape[1] == 12:
+        return P[:, :9].reshape(-1, 3, 3), P[:, 9:]
+    raise ValueError(f"{what}: expected (R, t), (n, 4, 4), (n, 3, 4) or (n, 12), got shape {P.shape}")
+
+
+# ---------------------------------------------------------------------------------------------
+# Per pose kind: factors, dof map and the assembly plan
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class _Kind:
+    """The variables of one pose type (d = 3: Pose2, d = 6: Pose3) and their native factors."""
+
+    d: int
+    keys: np.ndarray                  # sorted uint64
+    between: object | None = None     # Pose2Factors / Pose3Factors with i set
+    prior: object | None = None       # … with i None
+    gvar: np.ndarray | None = None    # global variable index of each pose
+    dof: np.ndarray | None = None     # (n, d) global dofs, None if they are simply 0..n·d−1
+    cidx: np.ndarray | None = None    # vertex of each diagonal contribution: between i, between j, prior
+    sym: tuple = ()
+    dseg: int = 0                     # offset of the diagonal sums (nsym, n) in the source array
+    hseg: int = 0                     # offset of the off-diagonal blocks
+    hsize: int = 0
+    pairs: tuple | None = None        # duplicate pairs: (pair id, flipped, n pairs)
+
+    @property
+    def n(self) -> int:
+        return len(self.keys)
+
+    @property
+    def nb(self) -> int:
+        return 0 if self.between is None else self.between.size
+
+    @property
+    def np_(self) -> int:
+        return 0 if self.prior is None else self.prior.size
+
+
+def _sym_pairs(d: int) -> tuple:
+    return tuple(zip(*np.triu_indices(d))) if d != 3 else nk.SYM3
+
+
+@dataclass
+class _Others:
+    """The factors GTSAM linearizes (anything not native) and the variables GTSAM retracts."""
+
+    graph: gtsam.NonlinearFactorGraph
+    keys: np.ndarray            # sorted keys of graph's factors
+    dofs: np.ndarray            # global dof of each column of their sparse Jacobian
+    var_keys: list              # keys of non-pose variables (retracted by gtsam)
+    var_slices: list            # (lo, hi) dofs of each
+    touched2: np.ndarray        # local Pose2 / Pose3 indices of poses these factors need
+    touched3: np.ndarray
+
+
+class NativeLinearizer:
+    """:class:`~gtsam_schwarz.linearization.base.Linearizer` with vectorized numpy kernels for pose graphs.
+
+    ``NativeLinearizer(graph, values)`` reads the factors once (``values`` only for the variable types);
+    :meth:`from_arrays` builds it from numpy arrays without a gtsam graph (file loaders). The state is a
+    :class:`NativeState`; for a pure pose graph no gtsam call happens per iteration.
+    """
+
+    def __init__(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values):
+        t0 = time.perf_counter()
+        keys = np.asarray(graph.keyVector(), dtype=np.uint64)   # sorted (a KeySet)
+        have = np.sort(np.asarray(values.keys(), dtype=np.uint64))
+        missing = ~nk.in_sorted(keys, have)
+        if np.any(missing):
+            raise KeyError(f"graph key {gtsam.DefaultKeyFormatter(int(keys[missing][0]))} has no initial value")
+        keys2 = keys[nk.in_sorted(keys, np.sort(np.asarray(gtsam.utilities.allPose2s(values).keys(), dtype=np.uint64)))]
+        keys3 = keys[nk.in_sorted(keys, np.sort(np.asarray(gtsam.utilities.allPose3s(values).keys(), dtype=np.uint64)))]
+        other_vars = keys[~(nk.in_sorted(keys, keys2) | nk.in_sorted(keys, keys3))]
+        lists = {k: ([], [], [], [], []) for k in ("b2", "p2", "b3", "p3")}   # i, j, z, noise spec, factor index
+        other_ids = []
+        specs, keep = {}, []           # noise model → spec index (shared models are looked at once)
+        spec_list = []
+        other = gtsam.NonlinearFactorGraph()
+        native = {gtsam.BetweenFactorPose2: ("b2", 3), gtsam.PriorFactorPose2: ("p2", 3),
+                  gtsam.BetweenFactorPose3: ("b3", 6), gtsam.PriorFactorPose3: ("p3", 6)}
+        for idx in range(graph.size()):  # one pass over the factors, a few gtsam calls each
+            f = graph.at(idx)
+            if f is None:
+                continue
+            kind = native.get(type(f))
+            if kind is not None:
+                name, d = kind
+                nm = f.noiseModel()
+                s = specs.get(id(nm))
+                if s is None:
+                    keep.append(nm)    # keeps id(nm) unique while the loop runs
+                    spec = noise_spec(nm, d)
+                    s = specs[id(nm)] = -1 if spec is None else len(spec_list)
+                    if spec is not None:
+                        spec_list.append(spec)
+                fk = f.keys()
+                if s >= 0:
+                    li, lj, lz, ls, lf = lists[name]
+                    if name[0] == "b":
+                        if fk[0] != fk[1]:
+                            li.append(fk[0])
+                            lj.append(fk[1])
+                            m = f.measured()
+                            lz.append((m.x(), m.y(), m.theta()) if d == 3 else m.matrix())
+                            ls.append(s)
+                            lf.append(idx)
+                            continue
+                    else:
+                        lj.append(fk[0])
+                        m = f.prior()
+                        lz.append((m.x(), m.y(), m.theta()) if d == 3 else m.matrix())
+                        ls.append(s)
+                        lf.append(idx)
+                        continue
+            other.push_back(f)
+            other_ids.append(idx)
+        self.seconds_extract = time.perf_counter() - t0
+
+        def factors(name, kind_keys, d):
+            li, lj, lz, ls, lf = lists[name]
+            if not lj:
+                return None
+            s = np.asarray(ls, dtype=np.int64)
+            uniq, inv = nk.sorted_unique(s, return_inverse=True)   # the distinct noise models
+            used = [spec_list[u] for u in uniq.tolist()]
+            R = np.stack([spec[0] for spec in used])[inv]
+            code = np.asarray([spec[1] for spec in used], dtype=np.int8)[inv]
+            param = np.asarray([spec[2] for spec in used], dtype=np.float64)[inv]
+            j = np.searchsorted(kind_keys, np.asarray(lj, dtype=np.uint64))
+            i = np.searchsorted(kind_keys, np.asarray(li, dtype=np.uint64)) if name[0] == "b" else None
+            return {"i": i, "j": j, "z": lz, "R": R, "robust": nk.Robust.make(code, param, len(s)),
+                    "ids": np.asarray(lf, dtype=np.int64)}
+
+        kinds = {}
+        for tag, kk, d in (("2", keys2, 3), ("3", keys3, 6)):
+            if len(kk):
+                kinds[d] = (kk, factors("b" + tag, kk, d), factors("p" + tag, kk, d))
+        all_dims = values.dims() if len(other_vars) else {}
+        other_dims = np.asarray([all_dims[int(k)] for k in other_vars], dtype=np.int64)
+        self.n_factors = int(graph.size())
+        self._setup(kinds, other, other_vars, other_dims, values)
+        self._other_ids = np.asarray(other_ids, dtype=np.int64)
+        self.seconds_construct = time.perf_counter() - t0
+
+    # -----------------------------------------------------------------------------------------
+    @classmethod
+    def from_arrays(cls, kind: str, keys, poses, edges=None, measurements=None, *, information=None,
+                    sqrt_information=None, robust=None, prior_keys=None, prior_measurements=None,
+                    prior_information=None, prior_sqrt_information=None, prior_robust=None) -> "NativeLinearizer":
+        """A linearizer of a pure pose graph from numpy arrays (no gtsam graph, e.g. from a g2o reader).
+
+        kind: "pose2" or "pose3". keys (n,): pose ids (any order, unique); poses: Pose2 (n, 3) (x, y, θ);
+        Pose3 (R (n,3,3), t (n,3)) or (n, 4, 4) / (n, 3, 4) / (n, 12). edges (m, 2) of ids (i, j) with
+        measurements z of xi⁻¹xj in the same formats; information Ω or sqrt_information R, (m, d, d) or
+        one (d, d), in GTSAM's tangent order (Pose3: rotation first — g2o files store translation first).
+        robust: None, ("huber", k) or (codes, params) per edge. prior_*: the same for priors e = Log(z⁻¹x).
+        The variables are the poses some factor touches (as ``graph.keyVector()``), in sorted key order;
+        ``initial_state()`` returns their state from ``poses``.
+        """
+        t0 = time.perf_counter()
+        d = {"pose2": 3, "pose3": 6}.get(str(kind).lower())
+        if d is None:
+            raise ValueError(f"kind must be 'pose2' or 'pose3', not {kind!r}")
+        keys = np.asarray(keys, dtype=np.uint64).ravel()
+        order = np.argsort(keys, kind="stable")
+        skeys = keys[order]
+        if len(skeys) > 1 and np.any(skeys[1:] == skeys[:-1]):
+            raise ValueError("pose keys are not unique")
+
+        def index(ids):
+            ids = np.asarray(ids, dtype=np.uint64).ravel()
+            pos = np.searchsorted(skeys, ids)
+            if len(ids) and (np.any(pos >= len(skeys)) or np.any(skeys[np.minimum(pos, len(skeys) - 1)] != ids)):
+                raise KeyError("an edge or prior refers to an unknown pose id")
+            return pos
+
+        def meas(z, m):
+            if d == 3:
+                z = np.asarray(z, dtype=np.float64).reshape(m, 3)
+                return z.T
+            R, t = _pose3_arrays(z, "measurements")
+            return (R, t)
+
+        between = prior = None
+        if edges is not None and len(edges):
+            E = np.asarray(edges).reshape(-1, 2)
+            m = len(E)
+            between = {"i": index(E[:, 0]), "j": index(E[:, 1]), "z": meas(measurements, m),
+                       "R": _stack_R(sqrt_information, information, m, d), "robust": _robust_arrays(robust, m),
+                       "ids": np.arange(m)}
+            if np.any(between["i"] == between["j"]):
+                raise ValueError("an edge connects a pose to itself")
+        if prior_keys is not None and len(np.atleast_1d(prior_keys)):
+            pj = index(prior_keys)
+            m = len(pj)
+            mb = 0 if between is None else len(between["j"])
+            prior = {"i": None, "j": pj, "z": meas(prior_measurements, m),
+                     "R": _stack_R(prior_sqrt_information, prior_information, m, d),
+                     "robust": _robust_arrays(prior_robust, m), "ids": mb + np.arange(m)}
+        # the variables are the poses some factor touches (like graph.keyVector()); renumber
+        used = np.zeros(len(skeys), dtype=bool)
+        for spec in (between, prior):
+            if spec is not None:
+                used[spec["j"]] = True
+                if spec["i"] is not None:
+                    used[spec["i"]] = True
+        if not np.all(used):
+            new_index = np.cumsum(used) - 1
+            for spec in (between, prior):
+                if spec is not None:
+                    spec["j"] = new_index[spec["j"]]
+                    if spec["i"] is not None:
+                        spec["i"] = new_index[spec["i"]]
+            skeys, order = skeys[used], order[used]
+        self = cls.__new__(cls)
+        self.seconds_extract = time.perf_counter() - t0
+        self.n_factors = (0 if between is None else len(between["j"])) + (0 if prior is None else len(prior["j"]))
+        self._other_ids = np.zeros(0, np.int64)
+        self._setup({d: (skeys, between, prior)}, None, np.zeros(0, np.uint64), np.zeros(0, np.int64), None)
+        self.seconds_construct = time.perf_counter() - t0
+        if d == 3:
+            P = np.asarray(poses, dtype=np.float64).reshape(-1, 3)[order]
+            self._initial = NativeState(pose2=nk.pose2_state(P[:, 0], P[:, 1], P[:, 2]))
+        else:
+            R, t = _pose3_arrays(poses, "poses")
+            self._initial = NativeState(R3=np.ascontiguousarray(R[order]), t3=np.ascontiguousarray(t[order]))
+        return self
+
+    def initial_state(self) -> NativeState:
+        """The state of the poses given to :meth:`from_arrays`."""
+        return self._initial
+
+    # -----------------------------------------------------------------------------------------
+    def _setup(self, kinds: dict, other_graph, other_vars, other_dims, values) -> None:
+        """Global variable order, factor arrays, the fixed CSR pattern and its gather plan."""
+        k2 = kinds.get(3)
+        k3 = kinds.get(6)
+        parts = [(k2[0], 3) if k2 else (np.zeros(0, np.uint64), 3), (k3[0], 6) if k3 else (np.zeros(0, np.uint64), 6)]
+        all_keys = np.concatenate([parts[0][0], parts[1][0], other_vars]).astype(np.uint64)
+        all_dims = np.concatenate([np.full(len(parts[0][0]), 3), np.full(len(parts[1][0]), 6), other_dims]).astype(np.int64)
+        order = np.argsort(all_keys, kind="stable")
+        self.keys = all_keys[order]
+        self.dims = all_dims[order]
+        self.offsets = np.zeros(len(self.keys) + 1, dtype=np.int64)
+        np.cumsum(self.dims, out=self.offsets[1:])
+        self.dim = int(self.offsets[-1])
+
+        def var_index(k):
+            return np.searchsorted(self.keys, k)
+
+        self._k2 = self._k3 = None
+        rows, cols = [], []
+        for d, spec in ((3, k2), (6, k3)):
+            if spec is None:
+                continue
+            kk, b, p = spec
+            K = _Kind(d=d, keys=kk)
+            K.gvar = var_index(kk)
+            dof = self.offsets[K.gvar][:, None] + np.arange(d)
+            K.dof = None if (len(kk) * d == self.dim and np.array_equal(dof.ravel(), np.arange(self.dim))) else dof
+            K.between = self._factors(d, b) if b is not None else None
+            K.prior = self._factors(d, p) if p is not None else None
+            if K.between is not None:
+                rows.append(K.gvar[K.between.i])
+                cols.append(K.gvar[K.between.j])
+            if d == 3:
+                self._k2 = K
+            else:
+                self._k3 = K
+
+        # other factors (GTSAM): their key sets couple variables too
+        self._others = None
+        if other_graph is not None and (other_graph.size() or len(other_vars)):
+            self._others = self._setup_others(other_graph, other_vars, values, var_index, rows, cols)
+
+        t0 = time.perf_counter()
+        self.pattern = nk.BlockPattern(self.dims, np.concatenate(rows) if rows else np.zeros(0, np.int64),
+                                       np.concatenate(cols) if cols else np.zeros(0, np.int64))
+        self._plan()
+        self.seconds_pattern = time.perf_counter() - t0
+        self.diagonal = self.pattern.diagonal_positions()
+        self._translation = self._translation_mask(values)
+        self.seconds = {}
+        self._buffers = {}
+
+    @staticmethod
+    def _factors(d: int, spec: dict):
+        if d == 3:
+            R = spec["R"]
+            r6 = np.stack([R[:, 0, 0], R[:, 0, 1], R[:, 0, 2], R[:, 1, 1], R[:, 1, 2], R[:, 2, 2]])
+            z = spec["z"]
+            z = np.asarray(z, dtype=np.float64).reshape(-1, 3).T if isinstance(z, list) else z
+            perm, n_iso = nk.iso_first(r6)   # isotropic-translation factors first: cheaper kernel
+            if n_iso in (0, len(perm)):
+                perm = slice(None)
+            rob = spec["robust"]
+            if rob is not None:
+                rob = nk.Robust.make(rob.code[perm], rob.param[perm], len(r6[0]))
+            F = nk.Pose2Factors(j=spec["j"][perm], z=z[:, perm], R=r6[:, perm],
+                                i=None if spec["i"] is None else spec["i"][perm], robust=rob, n_iso=n_iso)
+            F.ids = np.asarray(spec["ids"])[perm]
+            return F
+        z = spec["z"]
+        if isinstance(z, list):
+            M = np.asarray(z, dtype=np.float64).reshape(-1, 4, 4)
+            zR, zt = M[:, :3, :3], M[:, :3, 3]
+        else:
+            zR, zt = z
+        F = nk.Pose3Factors(j=spec["j"], zR=zR, zt=zt, R=spec["R"], i=spec["i"], robust=spec["robust"])
+        F.ids = spec["ids"]
+        return F
+
+    def _setup_others(self, graph, other_vars, values, var_index, rows, cols) -> _Others:
+        keys_per_factor = [graph.at(i).keys() for i in range(graph.size()) if graph.at(i) is not None]
+        sub_keys = nk.sorted_unique(np.asarray([k for ks in keys_per_factor for k in ks], dtype=np.uint64))
+        for ks in keys_per_factor:
+            v = var_index(np.asarray(ks, dtype=np.uint64))
+            if len(v) > 1:
+                a, b = np.meshgrid(v, v, indexing="ij")
+                off = a != b
+                rows.append(a[off])
+                cols.append(b[off])
+        vi = var_index(sub_keys)
+        dofs = np.concatenate([np.arange(self.offsets[v], self.offsets[v + 1]) for v in vi]) if len(vi) else np.zeros(0, np.int64)
+        ov = var_index(other_vars)
+        touched2 = touched3 = np.zeros(0, np.int64)
+        if self._k2 is not None:
+            touched2 = np.flatnonzero(nk.in_sorted(self._k2.keys, sub_keys))
+        if self._k3 is not None:
+            touched3 = np.flatnonzero(nk.in_sorted(self._k3.keys, sub_keys))
+        return _Others(graph=graph, keys=sub_keys, dofs=dofs.astype(np.int64),
+                       var_keys=[int(k) for k in other_vars],
+                       var_slices=[(int(self.offsets[v]), int(self.offsets[v + 1])) for v in ov],
+                       touched2=touched2, touched3=touched3)
+
+    def _plan(self) -> None:
+        """The source-array layout and the gather index that fills H's CSR data from it."""
+        P = self.pattern
+        size = 0
+        puts = []   # (block rows, block cols, source index of each block entry)
+        for K in (self._k2, self._k3):
+            if K is None:
+                continue
+            d = K.d
+            K.sym = _sym_pairs(d)
+            nsym = len(K.sym)
+            symk = np.empty((d, d), dtype=np.int64)
+            for s, (a, b) in enumerate(K.sym):
+                symk[a, b] = symk[b, a] = s
+            cidx = [K.between.i, K.between.j] if K.between is not None else []
+            if K.prior is not None:
+                cidx.append(K.prior.j)
+            K.cidx = np.concatenate(cidx) if cidx else np.zeros(0, np.int64)
+            K.dseg = size
+            size += nsym * K.n
+            puts.append((K.gvar, K.gvar, K.dseg + symk[None] * K.n + np.arange(K.n)[:, None, None]))
+            if K.between is None:
+                continue
+            F = K.between
+            m = F.size
+            gi, gj = K.gvar[F.i], K.gvar[F.j]
+            lo, hi = np.minimum(gi, gj), np.maximum(gi, gj)
+            pk = lo * len(self.keys) + hi
+            upk, pid = nk.sorted_unique(pk, return_inverse=True)
+            K.hseg = size
+            a = np.arange(d)[:, None]
+            b = np.arange(d)[None, :]
+            if len(upk) == m:  # every pair once: blocks straight from the per-factor arrays
+                K.pairs = None
+                f = np.arange(m)[:, None, None]
+                if d == 3:   # SoA (9, m)
+                    idx_ab, idx_ba = (a * 3 + b)[None] * m + f, (b * 3 + a)[None] * m + f
+                else:        # AoS (m, 6, 6)
+                    idx_ab, idx_ba = f * 36 + (a * 6 + b)[None], f * 36 + (b * 6 + a)[None]
+                K.hsize = d * d * m
+                puts.append((gi, gj, K.hseg + idx_ab))
+                puts.append((gj, gi, K.hseg + idx_ba))
+            else:              # duplicate pairs: summed per (lo, hi) pair into (d², n pairs)
+                npairs = len(upk)
+                K.pairs = (pid, gi > gj, npairs)
+                K.hsize = d * d * npairs
+                first = np.zeros(npairs, dtype=np.int64)
+                first[pid[::-1]] = np.arange(m - 1, -1, -1)   # first factor of each pair
+                plo, phi = lo[first], hi[first]
+                p = np.arange(npairs)[:, None, None]
+                puts.append((plo, phi, K.hseg + (a * d + b)[None] * npairs + p))
+                puts.append((phi, plo, K.hseg + (b * d + a)[None] * npairs + p))
+            size += K.hsize
+        self._zero = size          # S[size] = 0: entries only GTSAM-linearized factors fill
+        self._src_size = size + 1
+        self._src = P.source_index(puts, fill=size)
+        P.perm = None   # only the plan needs it (8 bytes per entry of H)
+        self._other_pos = None  # (indptr, indices, positions) of the last H of the other factors
+
+    # -----------------------------------------------------------------------------------------
+    # Linearizer protocol
+    # -----------------------------------------------------------------------------------------
+    def state(self, values: gtsam.Values) -> NativeState:
+        """Pose arrays (sorted keys) and the other variables of ``values``."""
+        st = NativeState()
+        if self._k2 is not None:
+            rows = self._rows(values, self._k2.keys, gtsam.utilities.allPose2s, gtsam.utilities.extractPose2)
+            st.pose2 = nk.pose2_state(rows[:, 0], rows[:, 1], rows[:, 2])
+        if self._k3 is not None:
+            rows = self._rows(values, self._k3.keys, gtsam.utilities.allPose3s, gtsam.utilities.extractPose3)
+            st.R3 = np.ascontiguousarray(rows[:, :9].reshape(-1, 3, 3))
+            st.t3 = np.ascontiguousarray(rows[:, 9:12])
+        if self._others is not None and self._others.var_keys:
+            st.others = values.extract(self._others.var_keys)
+        return st
+
+    @staticmethod
+    def _rows(values, keys, all_of, extract) -> np.ndarray:
+        table = extract(values)
+        have = np.asarray(all_of(values).keys(), dtype=np.uint64)
+        order = np.argsort(have, kind="stable")
+        pos = np.searchsorted(have, keys, sorter=order)
+        if len(keys) and (np.any(pos >= len(have)) or np.any(have[order[np.minimum(pos, len(have) - 1)]] != keys)):
+            raise KeyError("values lack a pose of the graph")
+        return table[order[pos]]
+
+    def values(self, state: NativeState) -> gtsam.Values:
+        """``gtsam.Values`` of ``state`` (one insert per pose: only when asked for)."""
+        out = gtsam.Values(state.others) if state.others is not None else gtsam.Values()
+        self._insert_poses(out, state, None, None)
+        return out
+
+    def _insert_poses(self, out, state, idx2, idx3) -> None:
+        if self._k2 is not None:
+            keys = self._k2.keys if idx2 is None else self._k2.keys[idx2]
+            P = state.pose2 if idx2 is None else state.pose2[:, idx2]
+            for k, x, y, th in zip(keys.tolist(), P[0].tolist(), P[1].tolist(), nk.pose2_theta(P).tolist()):
+                out.insert(k, gtsam.Pose2(x, y, th))
+        if self._k3 is not None:
+            keys = self._k3.keys if idx3 is None else self._k3.keys[idx3]
+            R = state.R3 if idx3 is None else state.R3[idx3]
+            t = state.t3 if idx3 is None else state.t3[idx3]
+            for k, Rk, tk in zip(keys.tolist(), R, t):
+                out.insert(k, gtsam.Pose3(gtsam.Rot3(Rk), tk))
+
+    def retract(self, state: NativeState, x: np.ndarray) -> NativeState:
+        """state ⊕ x: poses x·Exp(δ) in numpy, other variables by ``Values.retract``."""
+        x = np.asarray(x, dtype=np.float64)
+        if x.shape != (self.dim,):
+            raise ValueError(f"step has shape {x.shape}, expected ({self.dim},)")
+        out = NativeState()
+        if self._k2 is not None:
+            K = self._k2
+            v = x.reshape(-1, 3) if K.dof is None else x[K.dof]
+            out.pose2 = nk.pose2_retract(state.pose2, v)
+        if self._k3 is not None:
+            K = self._k3
+            v = x.reshape(-1, 6) if K.dof is None else x[K.dof]
+            out.R3, out.t3 = nk.pose3_retract(state.R3, state.t3, v)
+        if state.others is not None:
+            vv = gtsam.VectorValues()
+            for k, (lo, hi) in zip(self._others.var_keys, self._others.var_slices):
+                vv.insert(k, x[lo:hi])
+            out.others = state.others.retract(vv)
+        return out
+
+    def _residual(self, state: NativeState, d: int, Fc):
+        return nk.pose2_residual(state.pose2, Fc) if d == 3 else nk.pose3_residual(state.R3, state.t3, Fc)
+
+    def _chunk_residuals(self, state: NativeState, K: _Kind, F):
+        """Residuals of the chunks of factor group F at ``state``, computed one chunk at a time so that
+        a chunk's arrays are still in cache when its blocks are built (nothing is kept)."""
+        for _, _, Fc in F.chunks():
+            yield self._residual(state, K.d, Fc)
+
+    def _native_error(self, state: NativeState) -> float:
+        """Σ ½‖R e‖² (robust Σ ρ) of the native factors (cached on the state)."""
+        c = state._cache
+        if "native_error" not in c:
+            total = 0.0
+            for K in (self._k2, self._k3):
+                if K is not None:
+                    for F in (K.between, K.prior):
+                        if F is not None:
+                            total += sum(r.error for r in self._chunk_residuals(state, K, F))
+            c["native_error"] = total
+        return c["native_error"]
+
+    def _other_values(self, state: NativeState) -> gtsam.Values:
+        c = state._cache
+        if "other_values" not in c:
+            vals = gtsam.Values(state.others) if state.others is not None else gtsam.Values()
+            self._insert_poses(vals, state, self._others.touched2, self._others.touched3)
+            c["other_values"] = vals
+        return c["other_values"]
+
+    def error(self, state: NativeState) -> float:
+        """Σ ½‖R e‖² (robust: Σ ρ(‖R e‖)) over all factors, equal to ``graph.error(values)``."""
+        total = self._native_error(state)
+        if self._others is not None and self._others.graph.size():
+            total += float(self._others.graph.error(self._other_values(state)))
+        return float(total)
+
+    def linearize(self, state: NativeState) -> LinearSystem:
+        """H (fixed CSR pattern), g = Σ JᵀW r and the error at ``state``, all native factors at once."""
+        t1 = time.perf_counter()
+        S = self._buffer("S", (self._src_size,))   # reused: H's data is a fresh gather of it
+        S[self._zero] = 0.0
+        g = np.zeros(self.dim)
+        error = 0.0
+        for K in (self._k2, self._k3):
+            if K is not None:
+                error += self._kind_system(K, state, S, g)
+        state._cache["native_error"] = error
+        t2 = time.perf_counter()
+        data = np.take(S, self._src, mode="clip", out=self._data_buffer())
+        t3 = time.perf_counter()
+        if self._others is not None and self._others.graph.size():
+            error += self._add_others(state, data, g)
+        H = self.pattern.matrix(data)
+        t4 = time.perf_counter()
+        self.seconds = {"blocks": t2 - t1, "gather": t3 - t2, "gtsam": t4 - t3}
+        return LinearSystem(H=H, g=g, error=float(error), diagonal=self.diagonal, seconds=dict(self.seconds))
+
+    def _kind_system(self, K: _Kind, state: NativeState, S: np.ndarray, g: np.ndarray) -> float:
+        """Blocks of one pose kind into the source array S (diagonal sums, off-diagonal blocks) and g;
+        returns the kind's error. Residual and blocks are computed chunk by chunk.
+
+        Diagonal contributions (between i, between j, prior) go to C / G and are summed per pose by
+        bincount; off-diagonal blocks go straight to S (or are summed per pair if pairs repeat)."""
+        d, nsym = K.d, len(K.sym)
+        mb, mp = K.nb, K.np_
+        nc = 2 * mb + mp
+        C = self._buffer(f"C{d}", (nsym, nc))
+        G = self._buffer(f"G{d}", (d, nc))
+        error = 0.0
+        if d == 3:
+            if K.between is not None:
+                hij = S[K.hseg:K.hseg + 9 * mb].reshape(9, mb) if K.pairs is None else np.empty((9, mb))
+                for (lo, hi, Fc), rc in zip(K.between.chunks(), self._chunk_residuals(state, K, K.between)):
+                    nk.pose2_system(Fc, rc, hjj=tuple(C[:, mb + lo:mb + hi]), gj=tuple(G[:, mb + lo:mb + hi]),
+                                    hij=tuple(hij[:, lo:hi]), hii=tuple(C[:, lo:hi]), gi=tuple(G[:, lo:hi]))
+                    error += rc.error
+                if K.pairs is not None:
+                    self._pair_sums(K, hij, S)
+            if K.prior is not None:
+                o = 2 * mb
+                for (lo, hi, Fc), rc in zip(K.prior.chunks(), self._chunk_residuals(state, K, K.prior)):
+                    nk.pose2_system(Fc, rc, hjj=tuple(C[:, o + lo:o + hi]), gj=tuple(G[:, o + lo:o + hi]))
+                    error += rc.error
+        else:
+            ia, ib = np.array(K.sym).T
+            if K.between is not None:
+                hij_all = S[K.hseg:K.hseg + 36 * mb].reshape(mb, 36) if K.pairs is None else np.empty((mb, 36))
+                for (lo, hi, Fc), rc in zip(K.between.chunks(), self._chunk_residuals(state, K, K.between)):
+                    hjj, gj, hij, hii, gi = nk.pose3_system(Fc, rc)
+                    C[:, lo:hi] = hii[:, ia, ib].T
+                    C[:, mb + lo:mb + hi] = hjj[:, ia, ib].T
+                    G[:, lo:hi] = gi.T
+                    G[:, mb + lo:mb + hi] = gj.T
+                    hij_all[lo:hi] = hij.reshape(hi - lo, 36)
+                    error += rc.error
+                if K.pairs is not None:
+                    self._pair_sums(K, hij_all.T, S)
+            if K.prior is not None:
+                o = 2 * mb
+                for (lo, hi, Fc), rc in zip(K.prior.chunks(), self._chunk_residuals(state, K, K.prior)):
+                    hjj, gj, *_ = nk.pose3_system(Fc, rc)
+                    C[:, o + lo:o + hi] = hjj[:, ia, ib].T
+                    G[:, o + lo:o + hi] = gj.T
+                    error += rc.error
+        n = K.n
+        for s in range(nsym):
+            S[K.dseg + s * n:K.dseg + (s + 1) * n] = np.bincount(K.cidx, C[s], minlength=n)
+        gk = np.empty((n, d))
+        for a in range(d):
+            gk[:, a] = np.bincount(K.cidx, G[a], minlength=n)
+        if K.dof is None:
+            g[:] = gk.ravel()
+        else:
+            g[K.dof] = gk
+        return error
+
+    def _data_buffer(self) -> np.ndarray:
+        """An array for H's values: a pooled one that nothing references any more (a returned H that
+        is still alive keeps its own), else a new one. Saves the page faults of a fresh 8·nnz bytes."""
+        pool = self._buffers.setdefault("data", [])
+        for k in range(len(pool)):
+            if sys.getrefcount(pool[k]) == 2:   # the pool's reference and the call's argument only
+                return pool[k]
+        buf = np.empty(self.pattern.nnz)
+        if len(pool) < 3:
+            pool.append(buf)
+        return buf
+
+    def _buffer(self, name: str, shape: tuple) -> np.ndarray:
+        """Scratch array kept between calls (no page faults for large temporaries); not thread-safe."""
+        buf = self._buffers.get(name)
+        if buf is None or buf.shape != shape:
+            buf = self._buffers[name] = np.empty(shape)
+        return buf
+
+    @staticmethod
+    def _pair_sums(K: _Kind, hij: np.ndarray, S: np.ndarray) -> None:
+        """Off-diagonal blocks of factors sharing a pair summed, oriented (lo, hi): (d², n pairs) SoA."""
+        pid, flip, npairs = K.pairs
+        d = K.d
+        for a in range(d):
+            for b in range(d):
+                w = hij[a * d + b] if a == b else np.where(flip, hij[b * d + a], hij[a * d + b])
+                lo = K.hseg + (a * d + b) * npairs
+                S[lo:lo + npairs] = np.bincount(pid, w, minlength=npairs)
+
+    def _add_others(self, state: NativeState, data: np.ndarray, g: np.ndarray) -> float:
+        """GTSAM's linearization of the other factors added into data (H's CSR values) and g; their error."""
+        O = self._others
+        vals = self._other_values(state)
+        lin = O.graph.linearize(vals)
+        T = lin.sparseJacobian_()
+        n_sub = len(O.dofs)
+        if T.size:
+            rows = T[0].astype(np.int64) - 1
+            cols = T[1].astype(np.int64) - 1
+            is_rhs = cols == n_sub
+            m = int(rows.max()) + 1
+            J = sp.csr_matrix((T[2][~is_rhs], (rows[~is_rhs], cols[~is_rhs])), shape=(m, n_sub))
+            b = np.bincount(rows[is_rhs], weights=T[2][is_rhs], minlength=m)
+            Jt = J.T.tocsr()
+            Hs = (Jt @ J).tocsr()
+            Hs.sum_duplicates()
+            Hs.sort_indices()
+            last = self._other_pos
+            if last is None or not (np.array_equal(last[0], Hs.indptr) and np.array_equal(last[1], Hs.indices)):
+                r = np.repeat(np.arange(n_sub), np.diff(Hs.indptr))
+                pos = self.pattern.entry_positions(O.dofs[r], O.dofs[Hs.indices])
+                self._other_pos = last = (Hs.indptr.copy(), Hs.indices.copy(), pos)
+            data[last[2]] += Hs.data
+            g[O.dofs] -= Jt @ b
+        return float(O.graph.error(vals))
+
+    def geometry(self, state: NativeState) -> VertexGeometry | None:
+        """Positions (n, d) and world-from-body rotations (n, d, d) if all variables are Pose2 or all Pose3."""
+        if self._others is not None and self._others.var_keys:
+            return None
+        if self._k2 is not None and self._k3 is None:
+            P = state.pose2
+            return VertexGeometry(positions=np.ascontiguousarray(P[:2].T), rotations=nk.pose2_matrices(P))
+        if self._k3 is not None and self._k2 is None:
+            return VertexGeometry(positions=state.t3.copy(), rotations=state.R3.copy())
+        return None
+
+    def _translation_mask(self, values) -> np.ndarray:
+        mask = np.ones(self.dim, dtype=bool)
+        if self._k2 is not None:
+            mask[(self.offsets[self._k2.gvar][:, None] + 2).ravel()] = False
+        if self._k3 is not None:
+            mask[(self.offsets[self._k3.gvar][:, None] + np.arange(3)).ravel()] = False
+        if self._others is not None and values is not None:
+            for k, (lo, hi) in zip(self._others.var_keys, self._others.var_slices):
+                for at in (values.atRot2, values.atRot3):  # rotations are not translations
+                    try:
+                        at(k)
+                    except RuntimeError:
+                        continue
+                    mask[lo:hi] = False
+                    break
+        return mask
+
+    def translation_mask(self) -> np.ndarray:
+        """True for translation dofs: Pose2 dofs 0, 1; Pose3 dofs 3, 4, 5; other variables unless rotations."""
+        return self._translation.copy()
+
+    def factor_errors(self, state: NativeState) -> np.ndarray:
+        """Error of every factor, indexed like the graph (``from_arrays``: edges, then priors);
+        equal to ``graph.at(k).error(values)``. A diagnostic: loops over the GTSAM-linearized factors."""
+        out = np.zeros(self.n_factors)
+        for K in (self._k2, self._k3):
+            if K is None:
+                continue
+            for F in (K.between, K.prior):
+                if F is None:
+                    continue
+                for (lo, hi, Fc), r in zip(F.chunks(), self._chunk_residuals(state, K, F)):
+                    out[F.ids[lo:hi]] = 0.5 * r.s2 if Fc.robust is None else Fc.robust.weight_loss(r.s2)[1]
+        if self._others is not None and len(self._other_ids):
+            vals = self._other_values(state)
+            for k, idx in enumerate(self._other_ids.tolist()):
+                out[idx] = self._others.graph.at(k).error(vals)
+        return out
+
+    # -----------------------------------------------------------------------------------------
+    @property
+    def native_factor_count(self) -> int:
+        """Number of factors linearized natively (the rest go through GTSAM)."""
+        return sum(K.nb + K.np_ for K in (self._k2, self._k3) if K is not None)
+
+    @property
+    def gtsam_factor_count(self) -> int:
+        """Number of factors linearized by GTSAM."""
+        return 0 if self._others is None else int(self._others.graph.size())
