@@ -37,7 +37,7 @@ SPEEDUP_OVER_OURS = ("gtsam-lm-pcg", "gtsam-lm-subgraph", *PEERS)  # rows that s
 NOT_INSTALLED = "not installed"
 SIZES = ("tiny", "small", "large")
 PHASES = ("linearize", "export", "setup", "cg", "update")
-BASE_PARAMS = {"method": "lm", "preconditioner": "gdsw"}
+BASE_PARAMS = {"method": "lm", "preconditioner": "auto"}
 TOLERANCE = 1e-6  # relative final-error difference to GTSAM LM that counts as "the same answer"
 STDERR_TAIL = 4000  # characters of a child's stderr kept
 
@@ -118,25 +118,25 @@ def stack_limit() -> dict:
 
 
 def load_case(case: Case, datasets: pathlib.Path):
-    """(graph, initial, poses, dimension) of a case."""
+    """(graph, initial, poses, dimension, arrays) of a case; ``arrays``: the loader's parsed numbers."""
     if case.file:
         from ..io import load_graph
         g = load_graph(datasets / case.file)
-        return g.graph, g.initial, g.poses, g.dimension
+        return g.graph, g.initial, g.poses, g.dimension, g.arrays
     from ..problems import square_loops
     p = square_loops(case.loops, case.points_per_side)
-    return p.graph, p.initial, p.poses, 2
+    return p.graph, p.initial, p.poses, 2, None
 
 
-def _solve_ours(graph, initial, overrides: dict) -> dict:
+def _solve_ours(graph, initial, overrides: dict, arrays: dict | None = None) -> dict:
     from .compare import run_ours
     from ..nonlinear import SchwarzParams
 
-    r = run_ours(graph, initial, SchwarzParams(**{**BASE_PARAMS, **overrides}))
+    r = run_ours(graph, initial, SchwarzParams(**{**BASE_PARAMS, **overrides}), arrays)
     its = r["iterations"]
     per = {k: (v / its if its else float("nan")) for k, v in r["split"].items()}
     keep = ("iterations", "seconds", "linear_solves", "cg_mean", "subdomains", "coarse_size", "converged",
-            "stop_reason")
+            "stop_reason", "linear_solver")
     return {**{k: r[k] for k in keep}, "values": r["values"], "split": r["split"], "split_per_iteration": per}
 
 
@@ -165,11 +165,11 @@ def solve(case: Case, solver: str, overrides: dict, datasets: pathlib.Path) -> d
             peers.import_g2o()
         except peers.PeerNotInstalled as exc:
             return {"not_installed": str(exc), "stack": stack_limit()}
-    graph, initial, poses, dimension = load_case(case, datasets)
+    graph, initial, poses, dimension, arrays = load_case(case, datasets)
     loaded, load_peak = _memory_mib()
     reset = _reset_peak()
     if solver == "ours":
-        r = _solve_ours(graph, initial, overrides)
+        r = _solve_ours(graph, initial, overrides, arrays)
     elif solver in PEERS:
         r = _solve_peer(graph, initial, solver)
     else:
@@ -338,7 +338,8 @@ def _split_row(r: dict) -> list[str]:
     cells = [_f(_num(per.get(k)) * 1e3, ".1f") for k in PHASES]
     return [r["case"], str(r.get("iterations", "–")), str(r.get("linear_solves", "–")), *cells,
             _f(sum(_num(per.get(k)) for k in PHASES) * 1e3, ".1f"), _f(sum(_num(total.get(k)) for k in PHASES), ".3f"),
-            _f(r.get("cg_mean"), ".1f"), str(r.get("subdomains", "–")), str(r.get("coarse_size", "–"))]
+            _f(r.get("cg_mean"), ".1f"), str(r.get("subdomains", "–")), str(r.get("coarse_size", "–")),
+            r.get("linear_solver", {}).get("used", "–")]
 
 
 def _header(report: dict) -> list[str]:
@@ -391,8 +392,10 @@ def markdown(report: dict) -> str:
     ours = [r for r in rows if r["solver"] == "ours" and r["status"] == "ok"]
     if ours:
         head = ["case", "its", "solves", "linearize", "export", "setup", "CG", "update", "ms / it",
-                "total s", "CG / solve", "subdomains", "coarse"]
+                "total s", "CG / solve", "subdomains", "coarse", "linear solver"]
         out += ["", "## Our time split per nonlinear iteration (ms)", ""] + _table(head, [_split_row(r) for r in ours])
+        out += [""] + [f"- {r['case']}: {r['linear_solver']['used']} ({r['linear_solver']['reason']})" for r in ours
+                       if r.get("linear_solver", {}).get("reason")]
     return "\n".join(out) + "\n"
 
 

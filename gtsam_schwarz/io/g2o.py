@@ -23,6 +23,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
 from .atomic import atomic_write
+from .tum import quaternion_to_rotation
 
 __all__ = ["GraphFileError", "LoadedGraph", "load_graph", "read_vertices", "write_g2o", "QUATERNION_TOLERANCE"]
 
@@ -54,6 +55,7 @@ class LoadedGraph:
     prior_added: bool  # True when load_graph added the gauge prior on the first pose
     warnings: list[str] = field(default_factory=list)
     path: str = ""
+    arrays: dict = field(default_factory=dict)  # the parsed numbers, for NativeLinearizer.from_arrays(**arrays)
 
 
 @dataclass(frozen=True)
@@ -408,7 +410,24 @@ def load_graph(path, *, add_prior: bool = True, prior_sigma: float = 1e-3, stric
 
     return LoadedGraph(graph=graph, initial=initial, dimension=dim, poses=n, edges=len(measured),
                        format=fmt, initial_guess=initial_guess, prior_added=prior_added,
-                       warnings=parsed.warnings, path=path)
+                       warnings=parsed.warnings, path=path,
+                       arrays=_arrays(dim, pose_ids, initial, edge_ids, edge_values, info, anchors, prior_sigma))
+
+
+def _arrays(dim, pose_ids, initial, edge_ids, edge_values, info, anchors, prior_sigma) -> dict:
+    """The graph as numpy arrays (keyword arguments of ``NativeLinearizer.from_arrays``): no second
+    pass over gtsam factors is needed to linearize it natively."""
+    if dim == 2:
+        poses = gtsam.utilities.extractPose2(initial)  # (n, 3), keys sorted like pose_ids
+        measurements = edge_values[:, :3]
+    else:
+        poses = gtsam.utilities.extractPose3(initial)  # (n, 12): R row-major, t
+        measurements = (quaternion_to_rotation(edge_values[:, 3:7]), edge_values[:, :3])
+    at = np.searchsorted(pose_ids, np.asarray(anchors, dtype=np.int64))
+    d = 3 if dim == 2 else 6
+    return {"kind": "pose2" if dim == 2 else "pose3", "keys": pose_ids, "poses": poses, "edges": edge_ids,
+            "measurements": measurements, "information": info, "prior_keys": np.asarray(anchors, dtype=np.int64),
+            "prior_measurements": poses[at], "prior_information": np.eye(d) / float(prior_sigma) ** 2}
 
 
 def _spanning_tree_poses(dim: int, pose_ids: np.ndarray, index: np.ndarray, measured: list) -> dict:

@@ -75,7 +75,11 @@ def test_our_split_has_the_five_phases(report):
         for k in PHASES:
             assert r["split"][k] >= 0
             assert r["split_per_iteration"][k] == pytest.approx(r["split"][k] / r["iterations"])
-        assert r["cg_mean"] > 0 and r["subdomains"] >= 1 and r["coarse_size"] >= 0
+        assert r["linear_solver"]["requested"] == "auto" and "predicted" in r["linear_solver"]["reason"]
+        if r["linear_solver"]["used"] == "direct":
+            assert r["cg_mean"] == 0 and r["subdomains"] is None
+        else:
+            assert r["cg_mean"] > 0 and r["subdomains"] >= 1 and r["coarse_size"] >= 0
 
 
 @pytest.mark.datasets
@@ -84,7 +88,7 @@ def test_report_records_machine_command_and_params(report):
     m = report["machine"]
     assert m["cpu_count"] >= 1 and m["gtsam"] and m["numpy"] and m["scipy"]
     assert report["command"].startswith("gtsam-schwarz bench --size tiny")
-    assert report["params"] == {"method": "lm", "preconditioner": "gdsw"}
+    assert report["params"] == {"method": "lm", "preconditioner": "auto"}
     assert report["params_full"]["max_iterations"] == 100
 
 
