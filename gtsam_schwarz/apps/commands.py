@@ -205,6 +205,12 @@ def add_solve(sub) -> None:
                         "with optimized vertices) or .tum (trajectory: key tx ty tz qx qy qz qw); the folder "
                         "must exist")
     p.add_argument("--force", action="store_true", help="allow -o to overwrite the input file")
+    p.add_argument("--backend", choices=("serial", "petsc"), default="serial",
+                   help="where the linear solves run: this process (serial, default) or PETSc over MPI (petsc: "
+                        "needs petsc4py and mpi4py; see docs/distributed.md)")
+    p.add_argument("--ranks", type=positive_int, default=None, metavar="K",
+                   help="with --backend petsc: run under mpiexec -n K (default: in this process, i.e. one rank, "
+                        "or one of the ranks of your own mpiexec)")
     p.add_argument("--plot", metavar="OUT.png|OUT.pdf|OUT.svg",
                    help="write trajectory and convergence plots, in the format of the extension; the folder "
                         "must exist")
@@ -231,7 +237,40 @@ def _write_poses(path: str, fmt: str, loaded, values, args) -> None:
         raise UsageError(f"{path}: cannot write: {exc.strerror or exc}") from None
 
 
+def _solve_on_petsc(args) -> int:
+    """``solve --backend petsc [--ranks K]``: the MPI driver (backends/petsc/run.py) in this process,
+    or under ``mpiexec -n K`` (with Open MPI's --allow-run-as-root / --oversubscribe where needed)."""
+    from ..backends import available
+
+    for option, value in (("--plot", args.plot), ("--ground-truth", args.ground_truth)):
+        if value:
+            raise UsageError(f"{option} is not available with --backend petsc")
+    ok, why = available("petsc")
+    if not ok:
+        raise UsageError(f"--backend petsc: {why}")
+    argv = [args.file, "--method", args.method, "--preconditioner", args.preconditioner, "--partition", args.partition,
+            "--overlap", str(args.overlap), "--cg-tol", repr(args.cg_tol), "--max-iterations", str(args.max_iterations)]
+    argv += ["--subdomains", str(args.subdomains)] if args.subdomains else []
+    argv += [flag for flag, on in (("--inexact", args.inexact), ("--force", args.force), ("--json", args.json)) if on]
+    argv += ["-o", args.output] if args.output else []
+    if args.ranks is None:
+        from ..backends.petsc.run import main as run_mpi
+
+        return run_mpi(argv)
+    import subprocess
+
+    from ..backends.petsc.env import launch_command, mpi_environment, mpiexec_path
+
+    if mpiexec_path() is None:
+        raise UsageError("--ranks: mpiexec/mpirun not found on PATH (Debian: apt-get install openmpi-bin)")
+    return subprocess.run(launch_command(args.ranks, argv), env=mpi_environment()).returncode
+
+
 def run_solve(args) -> int:
+    if args.ranks is not None and args.backend != "petsc":
+        raise UsageError("--ranks K needs --backend petsc")
+    if args.backend == "petsc":
+        return _solve_on_petsc(args)
     out_format = check_output("-o", args.output, GRAPH_FORMATS) if args.output else None
     if args.plot:
         check_plot("--plot", args.plot)

@@ -793,6 +793,38 @@ class NativeLinearizer:
             g[O.dofs] -= Jt @ b
         return float(O.graph.error(vals))
 
+    def pose_graph(self) -> dict | None:
+        """The between and prior factors of a pure Pose2 or Pose3 graph as arrays, for a global
+        initialization: poses n, edges (m, 2) (pose indices), R_meas (m, d, d), t_meas (m, d),
+        information (m, dof, dof) = RᵀR (GTSAM tangent order), priors (indices, R, t). None when the
+        graph has other variables or both pose types."""
+        if (self._k2 is None) == (self._k3 is None) or (self._others is not None and self._others.var_keys):
+            return None
+        K = self._k2 or self._k3
+        out = {"d": 2 if K is self._k2 else 3, "n": K.n}
+        for name, f in (("between", K.between), ("prior", K.prior)):
+            if f is None:
+                out[name] = None
+                continue
+            if K is self._k2:
+                c, s_ = np.cos(f.z[2]), np.sin(f.z[2])
+                R = np.stack([np.stack([c, -s_], -1), np.stack([s_, c], -1)], -2)
+                t = f.z[:2].T.copy()
+                U = np.zeros((f.R.shape[1], 3, 3))
+                U[:, 0, 0], U[:, 0, 1], U[:, 0, 2], U[:, 1, 1], U[:, 1, 2], U[:, 2, 2] = f.R
+            else:
+                R, t, U = f.zR, f.zt, f.R
+            out[name] = {"i": f.i, "j": f.j, "R": R, "t": t,
+                         "information": np.swapaxes(U, 1, 2) @ U}
+        return out
+
+    def with_poses(self, state: NativeState, rotations: np.ndarray, positions: np.ndarray) -> NativeState:
+        """A state with the poses of a pure Pose2 / Pose3 graph replaced (other variables kept)."""
+        if self._k2 is not None:
+            theta = np.arctan2(rotations[:, 1, 0], rotations[:, 0, 0])
+            return NativeState(pose2=nk.pose2_state(positions[:, 0], positions[:, 1], theta), others=state.others)
+        return NativeState(R3=np.ascontiguousarray(rotations), t3=np.ascontiguousarray(positions), others=state.others)
+
     def geometry(self, state: NativeState) -> VertexGeometry | None:
         """Positions (n, d) and world-from-body rotations (n, d, d) if all variables are Pose2 or all Pose3."""
         if self._others is not None and self._others.var_keys:

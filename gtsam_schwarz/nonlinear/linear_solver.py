@@ -5,6 +5,7 @@ forcing. The optimizer asks a :class:`LinearSolver` for a step and knows no prec
 
 from __future__ import annotations
 
+import importlib
 import time
 from typing import Callable
 
@@ -226,9 +227,16 @@ class AutoSolver(LinearSolver):
             self.chosen.moved(step_max)
 
 
+# back-ends sit above this layer (they reuse the serial solver's pieces): loaded by name, no import cycle
+BACKEND_FACTORIES = {"petsc": "gtsam_schwarz.backends.petsc.solver:make_petsc_solver"}
+
+
 def make_linear_solver(params: LinearSolverParams, offsets: np.ndarray, translation_mask: np.ndarray) -> LinearSolver:
     """"auto" → :class:`AutoSolver`; "direct" → :class:`DirectSolver`; any registered preconditioner →
-    :class:`PreconditionedCG`."""
+    :class:`PreconditionedCG`; ``backend="petsc"``: the same solve on PETSc over MPI."""
+    if params.backend != "serial":
+        module, _, factory = BACKEND_FACTORIES[params.backend].partition(":")
+        return getattr(importlib.import_module(module), factory)(params, offsets, translation_mask)
     if params.preconditioner == "auto":
         return AutoSolver(params, offsets, translation_mask)
     if params.preconditioner == "direct":

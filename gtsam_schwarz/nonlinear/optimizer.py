@@ -17,6 +17,7 @@ from ..dd.index_sets import vertex_dofs
 from ..linearization.base import Linearizer, LinearSystem
 from .gauge import free_components
 from .hooks import verbose_printer
+from .initialize import chordal_state
 from .linear_solver import Forcing, LinearSolver, make_linear_solver
 from .params import (DampingParams, LevenbergMarquardtParams, LinearSolverParams, SchwarzParams, as_nonlinear,
                      linear_solver_names)
@@ -44,9 +45,10 @@ class SchwarzOptimizer:
         if linearizer is None:
             linearizer = make_linearizer(graph, initial, self.nonlinear_params.linearization)
         self.linearizer = linearizer
-        self._state = linearizer.state(initial)
+        self._state = linearizer.state(initial) if initial is not None else linearizer.initial_state()
         self._error = linearizer.error(self._state)
         self.initial_error = self._error
+        self.initialization = self._initialize(self.nonlinear_params.initialization)
         self.history: list[IterationRecord] = []
         self.converged = False
         self.stop_reason = ""
@@ -86,6 +88,23 @@ class SchwarzOptimizer:
     @property
     def decomposition(self):
         return self.linear_solver.decomposition
+
+    def _initialize(self, method: str) -> dict:
+        """Replace the given start by a global initialization when that lowers the error."""
+        record = {"method": method, "used": False, "error_given": self._error, "error": float("nan"),
+                  "seconds": 0.0, "note": ""}
+        if method == "file":
+            return record
+        t0 = time.perf_counter()
+        state, note = chordal_state(self.linearizer, self._state)
+        record["note"] = note
+        if state is not None:
+            error = self.linearizer.error(state)
+            record["error"] = error
+            if np.isfinite(error) and error < self._error:
+                self._state, self._error, record["used"] = state, error, True
+        record["seconds"] = time.perf_counter() - t0
+        return record
 
     # -- pieces ----------------------------------------------------------------------------
     def _linearize(self) -> LinearSystem:
@@ -296,6 +315,7 @@ class SchwarzOptimizer:
             "coarse_size": self.history[-1].coarse_size if self.history else 0,
             "anchored": [int(k) for k in self._anchor_keys()],
             "linear_solver": self.linear_solver_choice(),
+            "initialization": self.initialization,
         }
 
     def linear_solver_choice(self) -> dict:

@@ -14,8 +14,10 @@ from ..dd.partition import PARTITIONS
 from ..schwarz.registry import preconditioner_names
 
 METHODS = ("gn", "lm")
+BACKENDS = ("serial", "petsc")  # where the linear solves run (petsc: PETSc over MPI, docs/distributed.md)
 FORCING = ("none", "eisenstat-walker")
 LINEARIZATIONS = ("auto", "native", "gtsam")
+INITIALIZATIONS = ("chordal", "file")
 
 
 def _choice(name, value, allowed):
@@ -48,6 +50,7 @@ class LinearSolverParams:
     cg_max_iterations: int | None = None  # None: 10 × the system dimension
     forcing: str = "none"  # none | eisenstat-walker
     forcing_max: float = 1e-3  # measured: 0.1 and 0.01 let LM drift to worse minima on M3500a
+    backend: str = "serial"  # serial (this process) | petsc (PETSc over MPI, gtsam_schwarz.backends.petsc)
     reuse_symbolic: bool = True  # keep interface, patterns and symbolic factorizations across solves
     lagged_preconditioner: bool = True  # keep M (all its numbers) while the poses have hardly moved
     lag_distance: float = 0.1  # lagged: rebuild M once the steps since its build sum to this (max-norm)
@@ -55,6 +58,7 @@ class LinearSolverParams:
 
     def __post_init__(self):
         _choice("preconditioner", self.preconditioner, linear_solver_names())
+        _choice("backend", self.backend, BACKENDS)
         _choice("partition", self.partition, PARTITIONS)
         _choice("forcing", self.forcing, FORCING)
         _choice("grow_along", self.grow_along, ("odometry", "all"))
@@ -90,11 +94,13 @@ class StoppingParams:
     error_tol: float = 0.0
     blas_threads: int | None = 1  # BLAS threads while iterating (None: leave the process setting)
     linearization: str = "auto"  # auto (native kernels for pose-graph factors, GTSAM for the rest) | native | gtsam
+    initialization: str = "chordal"  # chordal (global: rotations, then translations; kept if it lowers the error) | file
     verbose: bool = False  # a line per linear solve on stdout
     iteration_hook: object = None  # callable(record) after every linear solve, like GTSAM's iterationHook
 
     def _check_stopping(self, method: str):
         _choice("linearization", self.linearization, LINEARIZATIONS)
+        _choice("initialization", self.initialization, INITIALIZATIONS)
         if self.max_iterations < 0:
             raise ValueError(f"max_iterations must be >= 0, got {self.max_iterations}")
         if self.relative_gradient_tol is None:

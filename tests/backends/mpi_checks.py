@@ -80,7 +80,9 @@ def main() -> int:
 
     far = lin.retract(state, 0.3 * rng.standard_normal(H0.shape[0]))
     far = comm.bcast(far, root=0)
-    sequence = [(H0, state, 0.0), (H0 + 1e-3 * sp.eye(H0.shape[0], format="csr"), state, 0.01),
+    damped = H0.copy()
+    damped.setdiag(damped.diagonal() + 1e-3)  # LM's damping: new numbers in the same pattern
+    sequence = [(H0, state, 0.0), (damped, state, 0.01),
                 (sp.csr_matrix(lin.linearize(far).H), far, 0.01), (H1, state1, 0.5), (H1, state1, 0.0)]
     params = LinearSolverParams(preconditioner="gdsw", partition="segments", subdomains=loops, lag_growth=1.0)
     serial, solver = PreconditionedCG(params, lin.offsets, lin.translation_mask()), \

@@ -106,6 +106,15 @@ def test_preconditioner_and_cg_equal_serial_on_two_ranks():
         for a, b in zip(case["cg_petsc"], case["cg_serial"]):
             assert abs(a - b) <= max(1, 0.1 * b), case
         assert all(case["x_same_on_ranks"]), case
+    assert {c["coarse_matrix"] for c in out["cases"]} == {"harmonic", "galerkin"}
+    # lagging: the same decisions as the serial PreconditionedCG on the same sequence of matrices
+    for step in out["lag_sequence"]:
+        (a, lag_a, rebuilt_a), (b, lag_b, rebuilt_b) = step["serial"], step["petsc"]
+        assert (lag_a, rebuilt_a) == (lag_b, rebuilt_b), out["lag_sequence"]
+        assert abs(a - b) <= max(1, 0.1 * a), out["lag_sequence"]
+        assert step["x_error"] < 1e-6, out["lag_sequence"]  # both solve to a relative residual of 1e-8
+    assert [s["serial"][1:] for s in out["lag_sequence"]] == [[False, True], [True, False], [True, True],
+                                                            [True, True], [False, True]]
 
 
 def test_layout_owns_every_dof_once_with_contiguous_ranks():

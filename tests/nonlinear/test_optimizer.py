@@ -7,7 +7,7 @@ import pytest
 from conftest import dataset, gtsam_gauss_newton, pose2_array, pose2_difference
 from gtsam_schwarz import LINEAR_SOLVERS, SchwarzOptimizer, SchwarzParams, square_loops
 
-FIXED = dict(relative_error_tol=0.0, absolute_error_tol=-1.0, gradient_tol=0.0, relative_gradient_tol=0.0)
+FIXED = dict(initialization="file", relative_error_tol=0.0, absolute_error_tol=-1.0, gradient_tol=0.0, relative_gradient_tol=0.0)
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +34,7 @@ def test_model_problem_matches_gtsam_gauss_newton(model, model_reference, name):
 
 
 def test_default_stopping_converges_to_gtsam_optimum(model, model_reference):
-    opt = SchwarzOptimizer(model.graph, model.initial, SchwarzParams(preconditioner="gdsw", method="gn", subdomains=8))
+    opt = SchwarzOptimizer(model.graph, model.initial, SchwarzParams(initialization="file", preconditioner="gdsw", method="gn", subdomains=8))
     result = opt.optimize()
     assert opt.converged
     assert 2 <= opt.iterations() <= 10
@@ -77,7 +77,7 @@ def test_m3500_matches_gtsam_gauss_newton(m3500, name):
 
 
 def test_history_records_each_step(model):
-    opt = SchwarzOptimizer(model.graph, model.initial, SchwarzParams(preconditioner="gdsw", method="gn", subdomains=8))
+    opt = SchwarzOptimizer(model.graph, model.initial, SchwarzParams(initialization="file", preconditioner="gdsw", method="gn", subdomains=8))
     opt.optimize()
     assert opt.history
     for i, h in enumerate(opt.history, 1):
@@ -93,7 +93,7 @@ def test_history_records_each_step(model):
 
 
 def test_paper_gradient_rule_stops(model):
-    opt = SchwarzOptimizer(model.graph, model.initial, SchwarzParams(preconditioner="gdsw", method="gn", 
+    opt = SchwarzOptimizer(model.graph, model.initial, SchwarzParams(initialization="file", preconditioner="gdsw", method="gn", 
         subdomains=8, relative_error_tol=0.0, absolute_error_tol=-1.0, max_iterations=30))
     opt.optimize()
     assert opt.converged and "gradient" in opt.stop_reason
@@ -113,7 +113,7 @@ def test_iteration_cap_and_cg_cap_are_reported(model):
 def test_gauss_newton_step_that_increases_the_error_falls_back_to_damping():
     """GN never stops at a worse or unchanged point: a rejected step is retried with damping."""
     prob = square_loops(32, 16, sigma=0.1, seed=0)  # too noisy for undamped Gauss–Newton
-    opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(preconditioner="gdsw", method="gn", subdomains=32))
+    opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(initialization="file", preconditioner="gdsw", method="gn", subdomains=32))
     result = opt.optimize()
     rejected = [h for h in opt.history if not h["accepted"]]
     assert rejected and rejected[0]["lambda"] == 0.0 and rejected[0]["error"] > rejected[0]["error_before"]
@@ -146,7 +146,7 @@ def gtsam_lm(graph, initial):
 def test_m3500_levenberg_marquardt_matches_gtsam_lm(m3500, name):
     graph, initial, _, _ = m3500
     ref = graph.error(gtsam_lm(graph, initial))
-    opt = SchwarzOptimizer(graph, initial, SchwarzParams(method="lm", preconditioner=name,
+    opt = SchwarzOptimizer(graph, initial, SchwarzParams(initialization="file", method="lm", preconditioner=name,
                                                          partition="metis", subdomains=8))
     opt.optimize()
     assert opt.converged
@@ -158,7 +158,7 @@ def test_m3500_levenberg_marquardt_matches_gtsam_lm(m3500, name):
 def test_model_problem_levenberg_marquardt_matches_gtsam_lm(name):
     prob = square_loops(8, 8, sigma=0.05, seed=3)
     ref = prob.graph.error(gtsam_lm(prob.graph, prob.initial))
-    opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(method="lm", preconditioner=name, subdomains=8))
+    opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(initialization="file", method="lm", preconditioner=name, subdomains=8))
     opt.optimize()
     assert opt.error() <= ref * (1 + 1e-6)
     assert all(h["lambda"] > 0 for h in opt.history)
@@ -166,7 +166,7 @@ def test_model_problem_levenberg_marquardt_matches_gtsam_lm(name):
 
 def test_levenberg_marquardt_rejects_bad_steps_and_raises_lambda():
     prob = square_loops(32, 16, sigma=0.1, seed=0)  # Gauss-Newton's first step increases the error
-    opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(preconditioner="gdsw", method="lm", subdomains=32, max_iterations=60))
+    opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(initialization="file", preconditioner="gdsw", method="lm", subdomains=32, max_iterations=60))
     opt.optimize()
     rejected = [h for h in opt.history if not h["accepted"]]
     assert rejected, "expected at least one rejected LM step"
@@ -183,7 +183,7 @@ def test_inexact_newton_saves_cg_iterations_on_m3500(m3500):
     ref = graph.error(gtsam_lm(graph, initial))
     runs = {}
     for forcing in ("none", "eisenstat-walker"):
-        opt = SchwarzOptimizer(graph, initial, SchwarzParams(preconditioner="gdsw", method="lm", partition="metis", subdomains=8,
+        opt = SchwarzOptimizer(graph, initial, SchwarzParams(initialization="file", preconditioner="gdsw", method="lm", partition="metis", subdomains=8,
                                                              forcing=forcing))
         opt.optimize()
         runs[forcing] = opt
@@ -201,7 +201,7 @@ def test_pose3_helix_levenberg_marquardt_matches_gtsam_and_gdsw_stays_bounded():
         prob = helix_loops(L, 8, sigma=0.01, seed=0)
         ref = prob.graph.error(gtsam_lm(prob.graph, prob.initial))
         for name in ("gdsw", "one-level"):
-            opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(method="lm", preconditioner=name, subdomains=L))
+            opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(initialization="file", method="lm", preconditioner=name, subdomains=L))
             opt.optimize()
             assert opt.error() <= ref * (1 + 1e-6)
             cg[name, L] = opt.summary()["cg_mean"]
