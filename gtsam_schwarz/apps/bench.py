@@ -125,7 +125,7 @@ def load_case(case: Case, datasets: pathlib.Path):
         return g.graph, g.initial, g.poses, g.dimension, g.arrays
     from ..problems import square_loops
     p = square_loops(case.loops, case.points_per_side)
-    return p.graph, p.initial, p.poses, 2, None
+    return p.graph, p.initial, p.poses, 2, p.arrays
 
 
 def _solve_ours(graph, initial, overrides: dict, arrays: dict | None = None) -> dict:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
@@ -17,6 +17,7 @@ class SquareLoops:
     points_per_side: int
     sigma: float
     seed: int
+    arrays: dict | None = None  # the graph as numpy arrays (NativeLinearizer.from_arrays(**arrays)); 2D only
 
     @property
     def poses(self) -> int:
@@ -82,8 +83,14 @@ def square_loops(loops: int, points_per_side: int, sigma: float = 0.01, seed: in
         initial.insert(t + 1, pose)
     for t, (x, y, th) in enumerate(truth.tolist()):
         ground_truth.insert(t, gtsam.Pose2(x, y, th))
+    edges = np.r_[np.column_stack([np.arange(steps), np.arange(1, n)]), np.column_stack([closures - 4 * P, closures])]
+    information = np.concatenate([np.broadcast_to(np.eye(3) * odometry_information, (steps, 3, 3)),
+                                  np.broadcast_to(np.eye(3) * loop_information, (loops, 3, 3))])
+    arrays = {"kind": "pose2", "keys": np.arange(n), "poses": gtsam.utilities.extractPose2(initial),
+              "edges": edges, "measurements": np.r_[odo_meas, loop_meas], "information": information,
+              "prior_keys": np.array([0]), "prior_measurements": truth[:1], "prior_information": np.eye(3) * prior_information}
     return SquareLoops(graph=graph, initial=initial, ground_truth=ground_truth, loops=loops,
-                       points_per_side=P, sigma=sigma, seed=seed)
+                       points_per_side=P, sigma=sigma, seed=seed, arrays=arrays)
 
 
 @dataclass
