@@ -193,7 +193,7 @@ def worker_main(argv=None) -> int:
     ap.add_argument("--datasets", type=pathlib.Path, default=None)
     ap.add_argument("--result", required=True, help="file to write the JSON result to")
     args = ap.parse_args(argv)
-    from .jsonout import json_safe
+    from ..io.jsonout import json_safe
 
     row = solve(ALL_CASES[args.case], args.solver, json.loads(args.params), args.datasets or default_datasets_dir())
     pathlib.Path(args.result).write_text(json.dumps(json_safe(row), allow_nan=False))
@@ -533,7 +533,7 @@ def _report_head(args, overrides: dict, solvers: list[str]) -> dict:
 
 
 def run_bench(args) -> int:
-    from .jsonout import json_safe
+    from ..io.jsonout import json_safe
     from ..io import atomic_write
 
     valid = [c.name for c in CASES[args.size]]
@@ -564,9 +564,10 @@ def add_bench(sub) -> None:
     from .commands import positive_float
 
     p = sub.add_parser("bench", help="ours against GTSAM's LM (Cholesky, PCG, subgraph), one child process per run",
-                       description="End-to-end solves of our LM (GDSW) against GTSAM's LevenbergMarquardtOptimizer "
-                                   "with Cholesky, PCG (block-Jacobi) and SubgraphSolver; every run in its own "
-                                   "child process (own peak memory; a crash or timeout is a row of the table).")
+                       description="End-to-end solves of our default (LM, chordal start, automatic linear "
+                                   "solver) against GTSAM's LevenbergMarquardtOptimizer with Cholesky, PCG "
+                                   "(block-Jacobi) and SubgraphSolver, and g2o; every run in its own child process "
+                                   "(own peak memory; a crash or timeout is a row of the table).")
     p.add_argument("--size", choices=SIZES, default="small",
                    help="tiny: a few seconds; small: model problems, M3500, city10000, sphere2500; "
                         "large: model problems with 262k and 1M poses (default small)")

@@ -14,7 +14,7 @@ import os
 import sys
 
 from .bench import add_bench
-from .jsonout import json_safe
+from ..io.jsonout import json_safe
 from .runtime import tune_allocator
 from .commands import UsageError, add_all, make_out_dir, nonnegative_int, positive_float
 

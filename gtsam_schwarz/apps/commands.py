@@ -14,7 +14,8 @@ import pathlib
 import sys
 
 from .compare import GTSAM_SOLVERS, run_gtsam, run_ours
-from .jsonout import json_safe
+from ..io.jsonout import json_safe
+from ..nonlinear.hooks import verbose_printer
 from ..dd import PARTITIONS
 from ..nonlinear import LINEAR_SOLVERS, METHODS, SchwarzParams
 
@@ -132,15 +133,6 @@ def _add_quiet(p) -> None:
     p.add_argument("-q", "--quiet", action="store_true",
                    help="no progress display on stderr (a live bar on a terminal, a line every few seconds "
                         "otherwise); errors are still printed")
-
-
-def _iteration_printer(stream):
-    def hook(record):
-        flag = "" if record["accepted"] else "  rejected"
-        print(f"  iter {record['iteration']:3d}  error {record['error']:14.8g}  |grad| {record['gradient_norm']:10.3e}"
-              f"  cg {record['cg_iterations']:5d}  lambda {record['lambda']:8.1e}  "
-              f"{sum(record['seconds'].values()):6.2f} s{flag}", file=stream, flush=True)
-    return hook
 
 
 def _progress_hook(progress):
@@ -288,7 +280,7 @@ def run_solve(args) -> int:
     if human:
         print(f"{args.file}: {loaded.poses} poses, {loaded.edges} edges, {loaded.dimension}D "
               f"({loaded.format}, initial guess from {loaded.initial_guess})", flush=True)
-    hook = _chain(_iteration_printer(sys.stdout) if human else None, _progress_hook(progress))
+    hook = _chain(verbose_printer(sys.stdout) if human else None, _progress_hook(progress))
     params = SchwarzParams(method=args.method, preconditioner=args.preconditioner, subdomains=args.subdomains,
                            partition=args.partition, overlap=args.overlap, cg_tol=args.cg_tol,
                            max_iterations=args.max_iterations, iteration_hook=hook,

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..problems import bar_chain
 from ..krylov import pcg
-from .jsonout import json_safe
+from ..io.jsonout import json_safe
 from ..nonlinear import SchwarzOptimizer, SchwarzParams
 from ..schwarz import make_preconditioner
 from ..problems import square_loops

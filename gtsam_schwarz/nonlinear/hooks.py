@@ -5,11 +5,16 @@ from __future__ import annotations
 import sys
 
 
+def iteration_line(record) -> str:
+    """One line per linear solve, as the command line prints it."""
+    flag = "" if record["accepted"] else "  rejected"
+    return (f"  iter {record['iteration']:3d}  error {record['error']:14.8g}  |grad| {record['gradient_norm']:10.3e}"
+            f"  cg {record['cg_iterations']:5d}  lambda {record['lambda']:8.1e}  "
+            f"{sum(record['seconds'].values()):6.2f} s{flag}")
+
+
 def verbose_printer(stream=None):
-    """A hook that prints one line per linear solve (``verbose=True``)."""
+    """A hook that prints :func:`iteration_line` for every linear solve (``verbose=True``)."""
     def hook(record):
-        flag = "" if record.accepted else "  (rejected)"
-        print(f"iter {record.iteration:3d}  error {record.error:.6e}  |g| {record.gradient_norm:.3e}"
-              f"  lambda {record.lambda_:.1e}  cg {record.cg_iterations:5d}"
-              f"  {sum(record.seconds.values()):.2f}s{flag}", file=stream or sys.stdout, flush=True)
+        print(iteration_line(record), file=stream or sys.stdout, flush=True)
     return hook

@@ -72,7 +72,7 @@ def test_python_default_is_levenberg_marquardt_and_silent(capsys):
     assert opt.method == "lm" and opt.converged
     assert capsys.readouterr().out == ""
     SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(verbose=True, max_iterations=1)).optimize()
-    assert capsys.readouterr().out.startswith("iter   1")
+    assert capsys.readouterr().out.startswith("  iter   1")
 
 
 def test_no_convergence_warns_with_the_reason():

@@ -20,7 +20,9 @@ import pathlib
 import sys
 import time
 
-import numpy as np
+
+from ...io.jsonout import json_safe
+from ...nonlinear.hooks import verbose_printer
 
 PHASES = ("linearize", "export", "setup", "cg", "update")
 
@@ -131,30 +133,6 @@ def _check_output(args):
     return fmt
 
 
-def _printer(stream):
-    def hook(record):
-        flag = "" if record["accepted"] else "  rejected"
-        print(f"  iter {record['iteration']:3d}  error {record['error']:14.8g}  |grad| {record['gradient_norm']:10.3e}"
-              f"  cg {record['cg_iterations']:5d}  lambda {record['lambda']:8.1e}  "
-              f"{sum(record['seconds'].values()):6.2f} s{flag}", file=stream, flush=True)
-    return hook
-
-
-def _json_safe(obj):
-    if isinstance(obj, dict):
-        return {str(k): _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_safe(v) for v in obj]
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        v = float(obj)
-        return v if math.isfinite(v) else None
-    if isinstance(obj, np.ndarray):
-        return _json_safe(obj.tolist())
-    return obj
-
-
 def solve(args, comm) -> dict:
     """Run the optimizer on every rank; returns the report (identical decisions on every rank)."""
     from ...nonlinear import SchwarzOptimizer, SchwarzParams
@@ -169,7 +147,7 @@ def solve(args, comm) -> dict:
               f"{'serial' if args.serial else 'PETSc'} linear solves on {comm.Get_size()} rank(s)", flush=True)
     params = SchwarzParams(method=args.method, preconditioner=args.preconditioner, subdomains=args.subdomains,
                            partition=args.partition, overlap=args.overlap, cg_tol=args.cg_tol,
-                           max_iterations=args.max_iterations, iteration_hook=_printer(sys.stdout) if human else None,
+                           max_iterations=args.max_iterations, iteration_hook=verbose_printer(sys.stdout) if human else None,
                            forcing="eisenstat-walker" if args.inexact else "none")
     comm.Barrier()
     t0, cpu0 = time.perf_counter(), time.process_time()
@@ -266,7 +244,7 @@ def main(argv=None) -> int:
         return 1
     if rank == 0:
         if args.json:
-            print(json.dumps(_json_safe(report), allow_nan=False), flush=True)
+            print(json.dumps(json_safe(report), allow_nan=False), flush=True)
         else:
             r = report
             sec = r["seconds"]
