@@ -47,7 +47,9 @@ positive_float = _number(float, 0.0, strict=True)
 nonnegative_float = _number(float, 0.0, strict=False)
 
 
-def _load(path: str):
+def _load(path: str, strict: bool = False):
+    """The graph of a file; the loader's warnings (skipped records, repaired information matrices) on
+    stderr, or — with ``strict`` — a usage error for either."""
     from ..io import GraphFileError, load_graph
 
     p = pathlib.Path(path)
@@ -56,7 +58,10 @@ def _load(path: str):
     if p.is_dir():
         raise UsageError(f"{path}: is a directory, expected a g2o or TORO file")
     try:
-        return load_graph(p)
+        loaded = load_graph(p, strict=strict)
+        for warning in loaded.warnings:
+            print(f"warning: {warning}", file=sys.stderr)
+        return loaded
     except GraphFileError as exc:
         raise UsageError(str(exc)) from None
     except (OSError, UnicodeDecodeError) as exc:
@@ -197,6 +202,9 @@ def add_solve(sub) -> None:
                         "with optimized vertices) or .tum (trajectory: key tx ty tz qx qy qz qw); the folder "
                         "must exist")
     p.add_argument("--force", action="store_true", help="allow -o to overwrite the input file")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse a file with records we do not understand or information matrices that are not "
+                        "positive definite (default: skip / repair them, with a warning)")
     p.add_argument("--backend", choices=("serial", "petsc"), default="serial",
                    help="where the linear solves run: this process (serial, default) or PETSc over MPI (petsc: "
                         "needs petsc4py and mpi4py; see docs/distributed.md)")
@@ -269,7 +277,7 @@ def run_solve(args) -> int:
     if args.output and not args.force and pathlib.Path(args.output).exists() \
             and os.path.samefile(args.output, args.file):
         raise UsageError(f"{args.output}: refusing to overwrite the input file (use --force)")
-    loaded = _load(args.file)
+    loaded = _load(args.file, args.strict)
     truth = None
     if args.ground_truth:
         truth = _load_truth(args.ground_truth)
@@ -328,7 +336,8 @@ def run_solve(args) -> int:
                   f"its first pose anchored")
         print(f"{'converged' if row['converged'] else 'stopped'} after {row['iterations']} iterations "
               f"({row['stop_reason']}): error {row['initial_error']:.8g} -> {row['final_error']:.8g}; "
-              + (f"sparse Cholesky; " if row["linear_solver"]["used"] == "direct" else
+              + ("no linear solve; " if not row["linear_solves"] else
+                 "sparse Cholesky; " if row["linear_solver"]["used"] == "direct" else
                  f"{row['subdomains']} subdomains, coarse space {row['coarse_size']}, "
                  f"{row['cg_mean']:.1f} CG iterations per solve; ") + f"{row['seconds']:.2f} s "
               f"(linearize {report['seconds']['linearize']:.2f}, setup {split['setup']:.2f}, cg {split['cg']:.2f})")
@@ -445,7 +454,7 @@ def add_compare(sub) -> None:
 
 
 def run_compare(args) -> int:
-    loaded = _load(args.file)
+    loaded = _load(args.file, args.strict)
     truth = None
     if args.ground_truth:
         truth = _load_truth(args.ground_truth)

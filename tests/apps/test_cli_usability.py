@@ -339,3 +339,14 @@ def test_demo_prints_ate_and_rpe_per_solver(tmp_path):
     assert len(rows) == 6 and all(float(r[-2]) > 0 and float(r[-1]) > 0 for r in rows)
     assert "initial guess (dead reckoning): ATE" in proc.stdout
     assert (tmp_path / "demo" / "demo_trajectory.png").read_bytes()[:8] == PNG
+
+
+def test_loader_warnings_are_printed_and_strict_refuses(tmp_path):
+    f = tmp_path / "extra.g2o"
+    f.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nFOO 1\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n")
+    ok = subprocess.run([sys.executable, "-m", "gtsam_schwarz.apps.cli", "solve", str(f), "-q"],
+                        capture_output=True, text=True)
+    assert ok.returncode == 0 and "warning: skipped 1 line with unknown tag 'FOO' (first at line 3)" in ok.stderr
+    strict = subprocess.run([sys.executable, "-m", "gtsam_schwarz.apps.cli", "solve", str(f), "--strict"],
+                            capture_output=True, text=True)
+    assert strict.returncode == 2 and strict.stderr.count("\n") <= 2 and "(strict)" in strict.stderr
