@@ -134,6 +134,16 @@ def _progress(args, label: str, total: int | None = None, show: bool = True):
     return Progress(label, total, enabled=show and not getattr(args, "quiet", False))
 
 
+def _landmarks(loaded) -> str:
+    return f", {loaded.landmarks} landmarks ({loaded.landmark_edges} observations)" if loaded.landmarks else ""
+
+
+def _add_strict(p) -> None:
+    p.add_argument("--strict", action="store_true",
+                   help="refuse a file with records we do not understand or information matrices that are not "
+                        "positive definite (default: skip / repair them, with a warning)")
+
+
 def _add_quiet(p) -> None:
     p.add_argument("-q", "--quiet", action="store_true",
                    help="no progress display on stderr (a live bar on a terminal, a line every few seconds "
@@ -202,9 +212,7 @@ def add_solve(sub) -> None:
                         "with optimized vertices) or .tum (trajectory: key tx ty tz qx qy qz qw); the folder "
                         "must exist")
     p.add_argument("--force", action="store_true", help="allow -o to overwrite the input file")
-    p.add_argument("--strict", action="store_true",
-                   help="refuse a file with records we do not understand or information matrices that are not "
-                        "positive definite (default: skip / repair them, with a warning)")
+    _add_strict(p)
     p.add_argument("--backend", choices=("serial", "petsc"), default="serial",
                    help="where the linear solves run: this process (serial, default) or PETSc over MPI (petsc: "
                         "needs petsc4py and mpi4py; see docs/distributed.md)")
@@ -286,7 +294,7 @@ def run_solve(args) -> int:
     # progress on stderr, unless the iteration lines on a terminal's stdout already show it
     progress = _progress(args, "solve", show=not (human and sys.stdout.isatty()))
     if human:
-        print(f"{args.file}: {loaded.poses} poses, {loaded.edges} edges, {loaded.dimension}D "
+        print(f"{args.file}: {loaded.poses} poses, {loaded.edges} edges{_landmarks(loaded)}, {loaded.dimension}D "
               f"({loaded.format}, initial guess from {loaded.initial_guess})", flush=True)
     hook = _chain(verbose_printer(sys.stdout) if human else None, _progress_hook(progress))
     params = SchwarzParams(method=args.method, preconditioner=args.preconditioner, subdomains=args.subdomains,
@@ -330,7 +338,8 @@ def run_solve(args) -> int:
         print(json.dumps(json_safe(report), allow_nan=False))
     else:
         ls = row["linear_solver"]
-        print(f"linear solver: {ls['used']}" + (f" (auto: {ls['reason']})" if ls["requested"] == "auto" else ""))
+        if row["linear_solves"]:
+            print(f"linear solver: {ls['used']}" + (f" (auto: {ls['reason']})" if ls["requested"] == "auto" else ""))
         if row["anchored"]:
             print(f"gauge: no prior on the component(s) of pose(s) {', '.join(map(str, row['anchored']))}: "
                   f"its first pose anchored")
@@ -442,6 +451,7 @@ def add_compare(sub) -> None:
                                    "same file; print final errors, iterations and time ratios to GTSAM's LM. "
                                    "Progress goes to stderr.")
     p.add_argument("file", help="g2o (VERTEX_SE2/EDGE_SE2, SE3:QUAT) or TORO (VERTEX2/EDGE2) file")
+    _add_strict(p)
     p.add_argument("--subdomains", type=positive_int, default=None, metavar="N",
                    help="number of subdomains for ours (default: about 500 poses each)")
     p.add_argument("--partition", choices=PARTITIONS, default="auto",
@@ -468,7 +478,7 @@ def run_compare(args) -> int:
         print(json.dumps({"file": str(args.file), "poses": loaded.poses, "edges": loaded.edges,
                           "rows": _json_rows(rows)}))
     else:
-        print(f"{args.file}: {loaded.poses} poses, {loaded.edges} edges, {loaded.dimension}D")
+        print(f"{args.file}: {loaded.poses} poses, {loaded.edges} edges{_landmarks(loaded)}, {loaded.dimension}D")
         print_table(rows)
         if truth is not None:
             print(ACCURACY_NOTE)
