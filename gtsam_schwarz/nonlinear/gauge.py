@@ -14,6 +14,7 @@ from scipy.sparse.csgraph import connected_components
 
 from ..coarse.modes import rigid_modes
 from ..dd.geometry import VertexGeometry
+from ..solvers.cost import vertex_pattern
 
 FREE_TOL = 1e-8  # Rayleigh quotient zᵀHz / zᵀdiag(H)z of a translation mode below this: no anchor
 
@@ -26,10 +27,7 @@ def free_components(H: sp.csr_matrix, offsets: np.ndarray, geometry: VertexGeome
     nv = len(offsets) - 1
     if geometry is None or nv == 0:
         return np.zeros(0, dtype=np.int64)
-    owner = np.repeat(np.arange(nv), np.diff(offsets))
-    C = sp.coo_matrix(H)
-    blocks = sp.csr_matrix((np.ones(C.nnz), (owner[C.row], owner[C.col])), shape=(nv, nv))
-    n_comp, comp = connected_components(blocks, directed=False)
+    n_comp, comp = connected_components(vertex_pattern(H, offsets), directed=False)
     d = geometry.d
     modes = rigid_modes(geometry, np.arange(nv), np.zeros((nv, d)), rotation=False)  # (nv, dim, d)
     dim = modes.shape[1]

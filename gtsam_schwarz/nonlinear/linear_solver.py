@@ -19,7 +19,7 @@ from ..dd.structure import GraphStructure
 from ..krylov import pcg
 from ..schwarz import create_preconditioner
 from ..dd.index_sets import IndexSets
-from ..solvers import SparseCholesky, SparsityPattern, block_diagonal, cholesky_cost, vertex_pattern
+from ..solvers import SparseCholesky, SparsityPattern, block_diagonal, cholesky_cost, pattern_cholesky_cost, vertex_pattern
 from .params import LinearSolverParams
 from .records import SolveResult
 
@@ -168,6 +168,10 @@ class CostModel:
     def direct(self, cost) -> float:
         return self.FLOP * cost.flops + (self.ENTRY + self.SOLVE) * cost.nnz_L
 
+    def schwarz_floor(self, nnz_H: int) -> float:
+        """A lower bound of the Schwarz time per solve: the SpMVs of its CG iterations."""
+        return self.SCHWARZ_OVERHEAD * self.CG_ITERATIONS * self.SPMV * nnz_H
+
     def schwarz(self, local, nnz_H: int) -> float:
         setup = 2 * (self.FLOP * local.flops + self.ENTRY * local.nnz_L) + \
             self.COARSE_COLUMNS * self.SOLVE * local.nnz_L
@@ -194,16 +198,23 @@ class AutoSolver(LinearSolver):
     def choose(self, H) -> LinearSolver:
         """Predict both costs and keep the cheaper solver (its name in ``choice``, why in ``reason``)."""
         direct = cholesky_cost(H, self.offsets)
+        t_direct = self.model.direct(direct)
         params = LinearSolverParams(**{**vars(self.params), "preconditioner": self.schwarz_name})
         cg = PreconditionedCG(params, self.offsets, self.translation_mask)
+        floor = self.model.schwarz_floor(H.nnz)
+        if t_direct <= floor:  # Schwarz cannot win: not even its SpMVs fit in the direct time
+            self.choice, self.chosen = "direct", DirectSolver()
+            self.reason = (f"nnz(L) {direct.nnz_L:.3g} ({direct.fill:.1f}x nnz(H)), {direct.flops:.3g} flops: "
+                           f"direct {t_direct:.3g} s per solve (predicted) < the {floor:.3g} s of "
+                           f"{self.model.CG_ITERATIONS} CG iterations' SpMVs alone")
+            return self.chosen
         dec = cg._decompose(H)
         S = sp.csc_matrix(dec.overlapping)
         S.sort_indices()
         sets = IndexSets(indices=S.indices.astype(np.int64), ptr=S.indptr.astype(np.int64), n=S.shape[0])
         blocks = block_diagonal(vertex_pattern(H, self.offsets), sets)
-        dims = np.diff(self.offsets)[sets.indices]
-        local = cholesky_cost(blocks, np.r_[0, np.cumsum(dims)])
-        t_direct, t_schwarz = self.model.direct(direct), self.model.schwarz(local, H.nnz)
+        local = pattern_cholesky_cost(blocks, np.diff(self.offsets)[sets.indices])
+        t_schwarz = self.model.schwarz(local, H.nnz)
         facts = (f"nnz(L) {direct.nnz_L:.3g} ({direct.fill:.1f}x nnz(H)), {direct.flops:.3g} flops: "
                  f"direct {t_direct:.3g} s vs {self.schwarz_name} {t_schwarz:.3g} s per solve (predicted)")
         if t_direct <= t_schwarz:

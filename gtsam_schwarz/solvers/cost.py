@@ -34,12 +34,22 @@ class CholeskyCost:
 
 
 def vertex_pattern(A: sp.spmatrix, offsets: np.ndarray) -> sp.csr_matrix:
-    """The symmetric vertex-level pattern of a block matrix (1 where block (u, v) is stored)."""
+    """The vertex-level pattern of a block matrix (1 where block (u, v) is stored).
+
+    Reads only the first row of every vertex and, in it, the first column of every block: A's
+    pattern holds whole blocks (the fixed pattern of H does), so nothing else is needed."""
     offsets = np.asarray(offsets, dtype=np.int64)
     nv = len(offsets) - 1
+    A = sp.csr_matrix(A)
     owner = np.repeat(np.arange(nv), np.diff(offsets))
-    C = sp.coo_matrix(A)
-    B = sp.csr_matrix((np.ones(C.nnz), (owner[C.row], owner[C.col])), shape=(nv, nv))
+    first = offsets[:-1]
+    starts, ends = A.indptr[first], A.indptr[first + 1]
+    lengths = ends - starts
+    pos = np.repeat(starts - np.cumsum(lengths) + lengths, lengths) + np.arange(int(lengths.sum()))
+    cols = A.indices[pos]
+    rows = np.repeat(np.arange(nv), lengths)
+    keep = cols == first[owner[cols]]
+    B = sp.csr_matrix((np.ones(int(keep.sum())), (rows[keep], owner[cols[keep]])), shape=(nv, nv))
     B.data[:] = 1.0
     return B
 
@@ -47,11 +57,17 @@ def vertex_pattern(A: sp.spmatrix, offsets: np.ndarray) -> sp.csr_matrix:
 def cholesky_cost(A: sp.spmatrix, offsets: np.ndarray) -> CholeskyCost:
     """Predicted nnz(L) and flops of factorizing A (block pattern given by ``offsets``)."""
     offsets = np.asarray(offsets, dtype=np.int64)
-    nv = len(offsets) - 1
+    return pattern_cholesky_cost(vertex_pattern(A, offsets), np.diff(offsets), int(sp.csr_matrix(A).nnz))
+
+
+def pattern_cholesky_cost(B: sp.spmatrix, dims: np.ndarray, nnz_A: int | None = None) -> CholeskyCost:
+    """Predicted nnz(L) and flops of a block matrix given by its vertex pattern B and block sizes."""
+    nv = B.shape[0]
+    dims = np.asarray(dims, dtype=np.int64)
     if nv == 0:
         return CholeskyCost(0, 0.0, 0.0, 0)
-    d = float(np.mean(np.diff(offsets)))
-    B = vertex_pattern(A, offsets)
+    d = float(np.mean(dims))
+    B = sp.csr_matrix(B)
     B = B + B.T
     B.data[:] = -1.0
     deg = -np.asarray(B.sum(axis=1)).ravel()
@@ -59,7 +75,9 @@ def cholesky_cost(A: sp.spmatrix, offsets: np.ndarray) -> CholeskyCost:
     counts = _factor_column_counts(S)
     nnz_L = d * d * counts.sum() - nv * d * (d - 1) / 2
     flops = d ** 3 * float(np.sum(counts.astype(float) ** 2))
-    return CholeskyCost(nnz_A=int(sp.csr_matrix(A).nnz), nnz_L=float(nnz_L), flops=flops, n_dofs=int(offsets[-1]))
+    if nnz_A is None:
+        nnz_A = int(d * d * sp.csr_matrix(B).nnz)
+    return CholeskyCost(nnz_A=nnz_A, nnz_L=float(nnz_L), flops=flops, n_dofs=int(dims.sum()))
 
 
 def _factor_column_counts(S: sp.csc_matrix) -> np.ndarray:
