@@ -35,4 +35,6 @@ def chordal_state(linearizer, state, solver: str = "direct"):
             result.positions[:] = (result.positions @ R0.T) + p0
     new = linearizer.with_poses(state, result.rotations, result.positions)
     info = result.info
-    return new, (f"chordal: {info['seconds']:.2f} s ({solver})")
+    iterations = info.get("rotation_iterations", []) + info.get("translation_iterations", [])
+    how = f"CG, {sum(iterations)} iterations" if solver == "cg" else "direct"
+    return new, f"chordal: {info['seconds']:.2f} s ({how})"

@@ -96,7 +96,10 @@ class SchwarzOptimizer:
         if method == "file":
             return record
         t0 = time.perf_counter()
-        state, note = chordal_state(self.linearizer, self._state)
+        # its two linear systems go to the same kind of solver as the Gauss-Newton systems: a direct
+        # factorization unless a preconditioner is asked for by name (then CG with Schwarz)
+        direct = self.nonlinear_params.linear_solver.preconditioner in ("auto", "direct")
+        state, note = chordal_state(self.linearizer, self._state, solver="direct" if direct else "cg")
         record["note"] = note
         if state is not None:
             error = self.linearizer.error(state)
