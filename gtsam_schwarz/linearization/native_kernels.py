@@ -403,6 +403,26 @@ def pose2_residual(P: np.ndarray, F: Pose2Factors) -> Pose2Residual:
     return Pose2Residual((e1, e2, w), (we0, we1, we2), s2, (t1, t2), (d1, d2), cE, sE, a, weight, error)
 
 
+def _jacobian_terms(res):
+    """The entries of the between-factor Jacobian shared by both kernels: P = [[p, −q], [q, p]] on
+    the translation, (u1, u2) the rotation column (p = α cos θ_E + (w/2) sin θ_E, q = α sin θ_E −
+    (w/2) cos θ_E, u = α′ t_E + ½ J t_E)."""
+    t1, t2 = res.t
+    cE, sE, a = res.cE, res.sE, res.a
+    w = res.e[2]
+    h = 0.5 * w
+    p = a * cE
+    p += h * sE
+    q = a * sE
+    q -= h * cE
+    ap = _alpha_prime(w, cE, sE)
+    u1 = ap * t1
+    u1 += 0.5 * t2
+    u2 = ap * t2
+    u2 -= 0.5 * t1
+    return p, q, u1, u2
+
+
 def _alpha_prime(w: np.ndarray, cE: np.ndarray, sE: np.ndarray) -> np.ndarray:
     """dα/dw for α(w) = (w/2)cot(w/2): (sin w − w)/(2(1 − cos w)), series below |w| = 0.3."""
     with np.errstate(all="ignore"):
@@ -425,18 +445,8 @@ def pose2_system(F: Pose2Factors, res: Pose2Residual, hjj, gj, hij=None, hii=Non
         _pose2_system_iso(F, res, hjj, gj, hij, hii, gi)
         return
     t1, t2 = res.t
-    cE, sE, a = res.cE, res.sE, res.a
-    w = res.e[2]
-    h = 0.5 * w
-    p = a * cE
-    p += h * sE
-    q = a * sE
-    q -= h * cE
-    ap = _alpha_prime(w, cE, sE)
-    u1 = ap * t1
-    u1 += 0.5 * t2
-    u2 = ap * t2
-    u2 -= 0.5 * t1
+    cE, sE = res.cE, res.sE
+    p, q, u1, u2 = _jacobian_terms(res)
     R = F.R
     if F.diagonal:
         A00 = R[0] * p
@@ -500,18 +510,9 @@ def _pose2_system_iso(F: Pose2Factors, res: Pose2Residual, hjj, gj, hij, hii, gi
     κ = p² + q² (P is a scaled rotation), so Hjj's and Hii's translation blocks are κρ²·I and the
     off-diagonal block's is a rotation times κρ²: about a third fewer operations."""
     t1, t2 = res.t
-    cE, sE, a = res.cE, res.sE, res.a
+    cE, sE = res.cE, res.sE
     e1, e2, w = res.e
-    h = 0.5 * w
-    p = a * cE
-    p += h * sE
-    q = a * sE
-    q -= h * cE
-    ap = _alpha_prime(w, cE, sE)
-    u1 = ap * t1
-    u1 += 0.5 * t2
-    u2 = ap * t2
-    u2 -= 0.5 * t1
+    p, q, u1, u2 = _jacobian_terms(res)
     rho2 = F.rho2
     if res.weight is not None:
         rho2 = rho2 * res.weight
