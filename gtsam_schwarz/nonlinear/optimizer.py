@@ -232,7 +232,6 @@ class SchwarzOptimizer:
         return self._levenberg_marquardt(system, gnorm, iteration)
 
     def _gauss_newton(self, system: LinearSystem, gnorm: float, iteration: int) -> bool:
-        p = self.nonlinear_params
         before = self._error
         record, new_state = self._try_step(system, gnorm, 0.0, iteration, system.seconds)
         record.accepted = bool(np.isfinite(record.error) and record.error <= before)
