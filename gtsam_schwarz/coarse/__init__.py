@@ -1,11 +1,14 @@
-"""Coarse spaces: rigid / unit modes, GDSW and RGDSW partitions of unity, harmonic extension.
+"""Coarse spaces: rigid / unit modes, GDSW, RGDSW and piecewise-linear partitions of unity,
+harmonic extension.
 
 Plain numpy/scipy: nothing here knows GTSAM.
 """
 
 from .extension import HarmonicExtension
-from .modes import COARSE_SPACES, interface_values, rigid_modes
+from .linear import entity_coordinate, junction_linear_partition, linear_partition
+from .modes import COARSE_SPACES, column_subdomains, interface_values, rigid_modes
 from .space import CoarseSpace, gdsw_coarse_space
 
-__all__ = ["COARSE_SPACES", "CoarseSpace", "HarmonicExtension", "gdsw_coarse_space", "interface_values",
+__all__ = ["COARSE_SPACES", "CoarseSpace", "HarmonicExtension", "column_subdomains", "entity_coordinate",
+           "gdsw_coarse_space", "interface_values", "junction_linear_partition", "linear_partition",
            "rigid_modes"]

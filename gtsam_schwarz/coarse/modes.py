@@ -4,7 +4,9 @@ Each interface component gets the rigid-body modes of the pose graph (translatio
 about the component's centroid) written in each pose's GTSAM tangent coordinates; without vertex
 geometry, the algebraic unit vectors per dof are used (the paper's choice, identical in span for
 single-pose components). GDSW: one set of modes per component. RGDSW: modes only on coarse nodes,
-spread to the other interface vertices with weights 1/#ancestors (paper Sec. 3.3).
+spread to the other interface vertices with weights 1/#ancestors (paper Sec. 3.3). "gdsw-linear":
+nodes at the ends of (and along) every entity with hat-function weights; "rgdsw-linear": the same
+with the end nodes of entities that meet merged into junction nodes (:mod:`.linear`).
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import scipy.sparse as sp
 
 from ..dd.geometry import VertexGeometry
 from ..dd.interface import Interface
+from .linear import junction_linear_partition, linear_partition
 
 def rigid_modes(geometry: VertexGeometry, vertices: np.ndarray, centers: np.ndarray,
                 rotation: bool) -> np.ndarray:
@@ -63,8 +66,14 @@ def rgdsw_partition(interface: Interface):
     return pair_v, A.indices, 1.0 / counts[pair_v], np.flatnonzero(is_node)
 
 
-# interface partitions of unity by name: a new coarse space is one function plus one line here
-COARSE_SPACES = {"gdsw": gdsw_partition, "rgdsw": rgdsw_partition}
+# interface partitions of unity by name: a new coarse space is one function plus one line here.
+# A function returns (vertex, node, weight) pairs and the nodes as components — or, for nodes that
+# are not components, (vertex, node, weight) pairs, the node count and the component of each node
+COARSE_SPACES = {"gdsw": gdsw_partition, "rgdsw": rgdsw_partition, "gdsw-linear": linear_partition,
+                 "rgdsw-linear": junction_linear_partition}
+# spaces whose every column lies on one component's vertices or on its descendants': the component's
+# subdomain set is the column's (others take the union over the column's vertices)
+COMPONENT_SPACES = ("gdsw", "rgdsw")
 
 
 def interface_values(interface: Interface, offsets: np.ndarray, kind: str = "gdsw",
@@ -76,19 +85,31 @@ def interface_values(interface: Interface, offsets: np.ndarray, kind: str = "gds
     except KeyError:
         raise ValueError(f"unknown coarse space {kind!r}; choose one of {', '.join(COARSE_SPACES)}") from None
     comp = interface.component
-    pair_v, pair_node, weight, nodes = partition_of_unity(interface)
-    node_col = np.full(interface.n_components, -1, dtype=np.int64)
-    node_col[nodes] = np.arange(len(nodes))
+    pou = partition_of_unity(interface)
+    if len(pou) == 4:  # nodes are interface components
+        pair_v, pair_node, weight, nodes = pou
+        node_col = np.full(interface.n_components, -1, dtype=np.int64)
+        node_col[nodes] = np.arange(len(nodes))
+    else:  # nodes of their own, each in one component
+        pair_v, pair_node, weight, n_nodes, nodes = pou
+        node_col = np.arange(n_nodes)
     verts = interface.vertices[pair_v]
     starts = offsets[verts]
     dim = int(offsets[verts[0] + 1] - starts[0]) if len(verts) else 0
     uniform = len(verts) and np.all(offsets[verts + 1] - starts == dim)
     if geometry is not None and uniform and dim == {2: 3, 3: 6}[geometry.d]:
-        # centroid of every coarse node's own vertices
-        cnt = np.bincount(comp, minlength=interface.n_components)
-        centers = np.stack([np.bincount(comp, weights=geometry.positions[interface.vertices, k],
-                                        minlength=interface.n_components) for k in range(geometry.d)], 1)
-        centers /= np.maximum(cnt, 1)[:, None]
+        if len(pou) == 4:
+            # centroid of every coarse node's own vertices
+            cnt = np.bincount(comp, minlength=interface.n_components)
+            centers = np.stack([np.bincount(comp, weights=geometry.positions[interface.vertices, k],
+                                            minlength=interface.n_components) for k in range(geometry.d)], 1)
+            centers /= np.maximum(cnt, 1)[:, None]
+        else:
+            # weighted centroid of every node's support
+            cnt = np.bincount(pair_node, weights=weight, minlength=n_nodes)
+            centers = np.stack([np.bincount(pair_node, weights=weight * geometry.positions[verts, k],
+                                            minlength=n_nodes) for k in range(geometry.d)], 1)
+            centers /= np.where(cnt > 0, cnt, 1.0)[:, None]
         M = rigid_modes(geometry, verts, centers[pair_node], rotation)  # (pairs, dim, modes)
         n_modes = M.shape[2]
         rows = (starts[:, None, None] + np.arange(dim)[None, :, None]).repeat(n_modes, 2)
@@ -113,3 +134,17 @@ def interface_values(interface: Interface, offsets: np.ndarray, kind: str = "gds
     used, cols = np.unique(cols, return_inverse=True)
     column_component = nodes[used // max(n_modes, 1)]
     return rows, cols.ravel(), vals, column_component
+
+
+def column_subdomains(interface: Interface, offsets: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                      n_columns: int) -> sp.csr_matrix:
+    """(n_columns × N) incidence: the union of the subdomain sets of the interface vertices where
+    each column of Φ_Γ (triplet rows = global dofs, cols) is nonzero — the subdomains whose
+    interiors its harmonic extension reaches."""
+    vertex = np.searchsorted(offsets, rows, side="right") - 1
+    where = np.searchsorted(interface.vertices, vertex)
+    P = sp.csr_matrix((np.ones(len(rows)), (cols, where)), shape=(n_columns, interface.size))
+    C = sp.csr_matrix(P @ interface.subdomains)
+    C.data[:] = 1.0
+    C.sort_indices()
+    return C

@@ -11,7 +11,7 @@ from ..dd.decomposition import Decomposition
 from ..dd.geometry import VertexGeometry
 from ..dd.interface import Interface
 from .extension import HarmonicExtension
-from .modes import interface_values
+from .modes import COMPONENT_SPACES, column_subdomains, interface_values
 
 
 @dataclass(frozen=True)
@@ -29,14 +29,20 @@ def gdsw_coarse_space(A: sp.spmatrix, decomposition: Decomposition, interface: I
                       kind: str = "gdsw", geometry: VertexGeometry | None = None,
                       rotation: bool = True, translation_mask: np.ndarray | None = None,
                       extension: HarmonicExtension | None = None) -> CoarseSpace:
-    """GDSW (``kind="gdsw"``) or RGDSW (``"rgdsw"``) coarse space, with or without rotations.
+    """GDSW (``kind="gdsw"``), RGDSW (``"rgdsw"``) or any space in :data:`COARSE_SPACES`
+    (``"gdsw-linear"``, ``"rgdsw-linear"``: hat functions along interface entities, which need an
+    interface from ``find_interface(..., group="two-hop")``), with or without rotations.
 
     Pass the same ``extension`` for successive matrices to reuse its symbolic work."""
     offsets = decomposition.structure.offsets
     rows, cols, vals, column_component = interface_values(
         interface, offsets, kind, geometry, rotation, translation_mask)
-    col_subdomains = sp.csr_matrix(interface.component_subdomains()[column_component]) \
-        if len(column_component) else sp.csr_matrix((0, decomposition.n_subdomains))
+    if not len(column_component):
+        col_subdomains = sp.csr_matrix((0, decomposition.n_subdomains))
+    elif kind in COMPONENT_SPACES:
+        col_subdomains = sp.csr_matrix(interface.component_subdomains()[column_component])
+    else:
+        col_subdomains = column_subdomains(interface, offsets, rows, cols, len(column_component))
     extension = extension or HarmonicExtension(decomposition, interface)
     Phi, A0 = extension(A, rows, cols, vals, col_subdomains)
     return CoarseSpace(Phi=Phi, A0=A0, column_component=column_component)

@@ -22,6 +22,9 @@ class Interface:
     subdomains: sp.csr_matrix  # (len(vertices) × N): which subdomains share each interface vertex
     interior_subdomain: np.ndarray  # (n_vertices,): the one subdomain of each interior vertex, −1 on Γ
     component: np.ndarray  # (len(vertices),): interface component of each interface vertex
+    # (len(vertices) × len(vertices)): interface vertices at most two graph edges apart (any subdomain
+    # sets); filled by find_interface(group="two-hop"), None otherwise
+    neighbours: sp.csr_matrix | None = None
 
     @property
     def size(self) -> int:
@@ -74,7 +77,11 @@ def find_interface(decomposition: Decomposition, group: str = "components") -> I
     """Γ = vertices in two or more nonoverlapping vertex sets V_i, grouped into components.
 
     ``group="components"``: by equal subdomain sets, then connected along graph edges (FROSch's
-    interface entities); ``group="vertices"``: every interface vertex on its own (the paper).
+    interface entities); ``group="vertices"``: every interface vertex on its own (the paper);
+    ``group="two-hop"``: by equal subdomain sets, connected through paths of at most two graph edges
+    (the interface of a grid-like graph zigzags: METIS cuts leave the earlier pose of each cut edge
+    on Γ, on alternate sides of the cut, so graph connectivity alone splits one interface edge
+    into many single poses); also fills ``neighbours``.
     """
     S = decomposition.vertex_subdomains
     shared = np.diff(S.indptr)
@@ -83,8 +90,14 @@ def find_interface(decomposition: Decomposition, group: str = "components") -> I
     single = shared == 1
     owner[single] = S.indices[S.indptr[:-1][single]]
     G = sp.csr_matrix(S[gamma])
+    neighbours = None
+    if group == "two-hop":
+        neighbours = two_hop_neighbours(decomposition.structure.adjacency(), gamma)
     if group == "vertices" or len(gamma) == 0:
         component = np.arange(len(gamma))
+    elif group == "two-hop":
+        _, group_id = np.unique(_row_signature(G), axis=0, return_inverse=True)
+        component = _components_within(neighbours, group_id.ravel())
     elif group == "components":
         _, group_id = np.unique(_row_signature(G), axis=0, return_inverse=True)
         group_id = group_id.ravel()
@@ -98,6 +111,27 @@ def find_interface(decomposition: Decomposition, group: str = "components") -> I
         adj = sp.csr_matrix((np.ones(int(same.sum())), (a[same], b[same])), shape=(len(gamma),) * 2)
         _, component = connected_components(adj, directed=False)
     else:
-        raise ValueError(f"group must be 'components' or 'vertices', got {group!r}")
+        raise ValueError(f"group must be 'components', 'vertices' or 'two-hop', got {group!r}")
     return Interface(vertices=gamma, subdomains=G, interior_subdomain=owner,
-                     component=np.asarray(component, dtype=np.int64))
+                     component=np.asarray(component, dtype=np.int64), neighbours=neighbours)
+
+
+def two_hop_neighbours(adjacency: sp.csr_matrix, vertices: np.ndarray) -> sp.csr_matrix:
+    """Pairs of ``vertices`` at most two edges apart in the graph ``adjacency`` (a symmetric vertex
+    adjacency), as a symmetric 0/1 matrix over ``vertices`` without its diagonal."""
+    R = sp.csr_matrix(adjacency)[vertices]
+    C = (R[:, vertices] + R @ R.T).tocoo()
+    off = C.row != C.col
+    m = len(vertices)
+    N = sp.csr_matrix((np.ones(int(off.sum())), (C.row[off], C.col[off])), shape=(m, m))
+    N.data[:] = 1.0
+    return N
+
+
+def _components_within(neighbours: sp.csr_matrix, group_id: np.ndarray) -> np.ndarray:
+    """Connected components of ``neighbours`` restricted to pairs in the same group."""
+    C = neighbours.tocoo()
+    same = group_id[C.row] == group_id[C.col]
+    m = neighbours.shape[0]
+    adj = sp.csr_matrix((np.ones(int(same.sum())), (C.row[same], C.col[same])), shape=(m, m))
+    return connected_components(adj, directed=False)[1]

@@ -24,6 +24,8 @@ REGISTRY: dict[str, tuple[type[SchwarzOperator], dict]] = {
     "gdsw": (TwoLevelSchwarz, {"kind": "gdsw"}),
     "gdsw-norot": (TwoLevelSchwarz, {"kind": "gdsw", "rotation": False}),
     "rgdsw": (TwoLevelSchwarz, {"kind": "rgdsw"}),
+    "gdsw-linear": (TwoLevelSchwarz, {"kind": "gdsw-linear", "interface_grouping": "two-hop"}),
+    "rgdsw-linear": (TwoLevelSchwarz, {"kind": "rgdsw-linear", "interface_grouping": "two-hop"}),
 }
 
 
