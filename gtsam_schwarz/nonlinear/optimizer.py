@@ -54,6 +54,7 @@ class SchwarzOptimizer:
         self.stop_reason = ""
         self.final_gradient_norm = float("nan")
         self._g0 = None
+        self._last_decrease: float | None = None  # the previous accepted step's error decrease
         p = self.nonlinear_params
         self.method = "lm" if isinstance(p, LevenbergMarquardtParams) else "gn"
         self._lambda = p.lambda_initial if self.method == "lm" else 0.0
@@ -185,13 +186,17 @@ class SchwarzOptimizer:
             hook(record)
 
     def _error_converged(self, before: float, step_tolerance: float) -> bool:
-        """GTSAM's checkConvergence on an accepted step.
+        """GTSAM's checkConvergence on an accepted step, confirmed by the remaining-decrease estimate.
 
         With inexact Newton, a small decrease after an inexact step only means the step was
-        truncated: the next step is solved to ``cg_tol`` and the test is repeated after it.
+        truncated: the next step is solved to ``cg_tol`` and the test is repeated after it. A small
+        decrease on a linearly converging run is not the minimum either: the run goes on until the
+        decreases still to come, d_k·r/(1−r) with r = d_k/d_{k−1} (≤ 0.99), are below
+        ``remaining_decrease_tol`` × error.
         """
         p = self.nonlinear_params
         decrease = before - self._error
+        previous, self._last_decrease = self._last_decrease, decrease
         reason = ""
         if self._error <= p.error_tol:
             reason = f"error {self._error:.3e} <= {p.error_tol:g}"
@@ -205,6 +210,11 @@ class SchwarzOptimizer:
         if step_tolerance > p.linear_solver.cg_tol and self._error > p.error_tol:
             self.forcing.exact_next = True
             return False
+        if p.remaining_decrease_tol > 0 and self._error > p.error_tol:
+            remaining = remaining_decrease(decrease, previous)
+            if remaining > p.remaining_decrease_tol * self._error:
+                return False
+            reason += f", remaining decrease ~{remaining:.1e}"
         self.converged, self.stop_reason = True, reason
         return True
 
@@ -260,8 +270,9 @@ class SchwarzOptimizer:
                 self._accept(new_state, record)
                 self._lambda = max(self._lambda / d.lambda_factor, d.lambda_lower_bound)
                 return not self._error_converged(before, record.cg_tolerance)
-            if record.cg_tolerance <= p.linear_solver.cg_tol and record.predicted_decrease <= max(
-                    p.absolute_error_tol, p.relative_error_tol * before):
+            floor = (p.remaining_decrease_tol * before if p.remaining_decrease_tol > 0
+                     else max(p.absolute_error_tol, p.relative_error_tol * before))
+            if record.cg_tolerance <= p.linear_solver.cg_tol and record.predicted_decrease <= floor:
                 # the quadratic model promises less than the error tolerances: nothing left to gain
                 # (GTSAM would raise λ to its bound here, wasting solves on Jacobian round-off)
                 self.converged = True
@@ -331,6 +342,16 @@ class SchwarzOptimizer:
             return []
         return np.asarray(self.linearizer.keys)[self.anchors].tolist()
 
+
+def remaining_decrease(decrease: float, previous: float | None) -> float:
+    """The decreases still to come if they shrink geometrically: d·r/(1−r), r = d/d_prev clipped to
+    [0, 0.99]; unknown (inf) without a previous decrease."""
+    if decrease <= 0:
+        return 0.0
+    if previous is None or previous <= 0:
+        return float("inf")
+    r = min(decrease / previous, 0.99)
+    return decrease * r / (1.0 - r)
 
 
 def make_linearizer(graph, initial, name: str = "auto") -> Linearizer:
