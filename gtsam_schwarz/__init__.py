@@ -25,8 +25,8 @@ _EXPORTS = {
     "nonlinear": ["LINEAR_SOLVERS", "SchwarzOptimizer", "SchwarzParams", "GaussNewtonParams",
                   "LevenbergMarquardtParams", "LinearSolverParams", "IterationRecord"],
     "io": ["GraphFileError", "LoadedGraph", "load_graph", "write_g2o"],
-    "problems": ["BarChain", "HelixLoops", "SquareLoops", "bar_chain", "helix_loops", "square_loops",
-                 "square_trajectory"],
+    "problems": ["BarChain", "HelixLoops", "Lawnmower", "SquareLoops", "Survey", "Survey3D", "bar_chain",
+                 "helix_loops", "lawnmower", "square_loops", "square_trajectory", "survey3d"],
 }
 _WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
 

@@ -29,11 +29,13 @@ from dataclasses import dataclass
 from . import peers
 from .report import markdown_table
 
-CORE_SOLVERS = ("ours", "gtsam-lm", "gtsam-lm-pcg", "gtsam-lm-subgraph")
+# our optimizer: the automatic choice, and each of its two linear solvers forced (over any --param)
+OURS = {"ours": {}, "ours-direct": {"preconditioner": "direct"}, "ours-schwarz": {"preconditioner": "rgdsw-linear"}}
+CORE_SOLVERS = (*OURS, "gtsam-lm", "gtsam-lm-pcg", "gtsam-lm-subgraph")
 PEERS = tuple(peers.PEER_SOLVERS)  # g2o-gn, g2o-lm: need the [peers] extra (g2opy)
 KNOWN_SOLVERS = CORE_SOLVERS + PEERS  # what --solvers accepts; a peer that is not installed is a row "not installed"
 SOLVERS = CORE_SOLVERS + (PEERS if peers.available() else ())  # the default: the peers when installed
-SPEEDUP_OVER_OURS = ("gtsam-lm-pcg", "gtsam-lm-subgraph", *PEERS)  # rows that show "that solver / ours"
+SPEEDUP_OVER_OURS = ("ours-direct", "ours-schwarz", "gtsam-lm-pcg", "gtsam-lm-subgraph", *PEERS)  # "that / ours"
 NOT_INSTALLED = "not installed"
 SIZES = ("tiny", "small", "large")
 PHASES = ("linearize", "export", "setup", "cg", "update")
@@ -44,33 +46,52 @@ STDERR_TAIL = 4000  # characters of a child's stderr kept
 
 @dataclass(frozen=True)
 class Case:
-    """One benchmark problem: the paper's model problem (loops × points per side) or a dataset file."""
+    """One benchmark problem: the paper's model problem (loops × points per side), a survey grid
+    (``grid``: rows, cols for the 2D lawnmower; floors, rows, cols for the 3D survey) or a dataset file."""
 
     name: str
     loops: int = 0
     points_per_side: int = 0
     file: str = ""
+    grid: tuple[int, ...] = ()
 
     @property
     def description(self) -> str:
         if self.file:
             return f"../shared/datasets/{self.file}"
+        if len(self.grid) == 2:
+            return f"2D lawnmower survey, {self.grid[0]} x {self.grid[1]} grid (sigma 0.01, seed 0)"
+        if len(self.grid) == 3:
+            return (f"3D survey, {self.grid[0]} floors of {self.grid[1]} x {self.grid[2]} lawnmower grids "
+                    "(sigma 0.01, seed 0)")
         return f"model problem, {self.loops} loops x {self.points_per_side} points per side (sigma 0.01, seed 0)"
 
     @property
     def model_poses(self) -> int | None:
-        return 4 * self.loops * self.points_per_side + 1 if not self.file else None
+        if self.file:
+            return None
+        return math.prod(self.grid) if self.grid else 4 * self.loops * self.points_per_side + 1
 
 
 def _model(loops: int, points_per_side: int) -> Case:
     return Case(f"sq{loops}x{points_per_side}", loops=loops, points_per_side=points_per_side)
 
 
+def _lawnmower(rows: int, cols: int) -> Case:
+    return Case(f"lawn{rows}x{cols}", grid=(rows, cols))
+
+
+def _survey3d(floors: int, rows: int, cols: int) -> Case:
+    return Case(f"survey{floors}x{rows}x{cols}", grid=(floors, rows, cols))
+
+
 CASES = {
     "tiny": (_model(8, 16), Case("smallGrid3D", file="smallGrid3D.g2o")),
     "small": (_model(32, 128), _model(128, 64), Case("M3500", file="input_M3500_g2o.g2o"),
-              Case("city10000", file="city10000.g2o"), Case("sphere2500", file="sphere2500.g2o")),
-    "large": (_model(1024, 64), _model(1024, 256)),
+              Case("city10000", file="city10000.g2o"), Case("sphere2500", file="sphere2500.g2o"),
+              _lawnmower(100, 100), _survey3d(8, 24, 24)),
+    "large": (_model(1024, 64), _model(1024, 256), _lawnmower(600, 600), _lawnmower(1000, 1000),
+              _survey3d(32, 32, 32), _survey3d(45, 45, 45)),
 }
 ALL_CASES = {c.name: c for size in SIZES for c in CASES[size]}
 
@@ -123,7 +144,10 @@ def load_case(case: Case, datasets: pathlib.Path):
         from ..io import load_graph
         g = load_graph(datasets / case.file)
         return g.graph, g.initial, g.poses, g.dimension, g.arrays
-    from ..problems import square_loops
+    from ..problems import lawnmower, square_loops, survey3d
+    if case.grid:
+        p = (lawnmower if len(case.grid) == 2 else survey3d)(*case.grid)
+        return p.graph, p.initial, p.poses, p.dimension, p.arrays
     p = square_loops(case.loops, case.points_per_side)
     return p.graph, p.initial, p.poses, 2, p.arrays
 
@@ -168,8 +192,8 @@ def solve(case: Case, solver: str, overrides: dict, datasets: pathlib.Path) -> d
     graph, initial, poses, dimension, arrays = load_case(case, datasets)
     loaded, load_peak = _memory_mib()
     reset = _reset_peak()
-    if solver == "ours":
-        r = _solve_ours(graph, initial, overrides, arrays)
+    if solver in OURS:
+        r = _solve_ours(graph, initial, {**overrides, **OURS[solver]}, arrays)
     elif solver in PEERS:
         r = _solve_peer(graph, initial, solver)
     else:
@@ -262,7 +286,7 @@ def run_solver(case: Case, solver: str, overrides: dict, datasets: pathlib.Path,
         result = pathlib.Path(tmp) / "result.json"
         argv = [sys.executable, "-m", "gtsam_schwarz.apps.bench", "--case", case.name, "--solver", solver,
                 "--params", json.dumps(overrides), "--datasets", str(datasets), "--result", str(result)]
-        child = run_child(argv, timeout, unlimited_stack=solver != "ours", env={**_child_env(), **(env or {})})
+        child = run_child(argv, timeout, unlimited_stack=solver not in OURS, env={**_child_env(), **(env or {})})
         row = json.loads(result.read_text()) if child["status"] == "ok" and result.exists() else {}
     if child["status"] == "ok" and not row:
         child["status"] = "error: the child wrote no result"
@@ -303,6 +327,34 @@ def add_comparisons(rows: list[dict]) -> None:
                               if ok_row and r["solver"] in SPEEDUP_OVER_OURS else float("nan"))
 
 
+def direct_vs_schwarz(rows: list[dict]) -> list[dict]:
+    """Per case with an ok ours-direct and ours-schwarz row: time and peak-memory ratios Schwarz ÷
+    direct, the faster of the two, and what ``auto`` (the ours row) chose and whether that was it."""
+    out = []
+    for case in dict.fromkeys(r["case"] for r in rows):
+        ok = {r["solver"]: r for r in rows if r["case"] == case and r["status"] == "ok"}
+        direct, schwarz, auto = ok.get("ours-direct"), ok.get("ours-schwarz"), ok.get("ours")
+        if direct is None or schwarz is None:
+            continue
+        seconds = _ratio(schwarz.get("seconds"), direct.get("seconds"))
+        faster = "schwarz" if seconds < 1 else "direct"
+        chose = auto.get("linear_solver", {}).get("used") if auto else None
+        picked = None if chose is None else ("direct" if chose == "direct" else "schwarz")
+        out.append({"case": case, "direct_seconds": direct.get("seconds"), "schwarz_seconds": schwarz.get("seconds"),
+                    "auto_seconds": auto.get("seconds") if auto else None, "schwarz_over_direct": seconds,
+                    "peak_schwarz_over_direct": _ratio(schwarz.get("peak_mib"), direct.get("peak_mib")),
+                    "delta_schwarz_over_direct": _ratio(_delta(schwarz), _delta(direct)),
+                    "schwarz_cg_mean": schwarz.get("cg_mean"), "schwarz_subdomains": schwarz.get("subdomains"),
+                    "schwarz_coarse_size": schwarz.get("coarse_size"), "faster": faster, "auto_chose": chose,
+                    "auto_picked_faster": None if picked is None else picked == faster})
+    return out
+
+
+def _delta(r: dict) -> float:
+    """The solver's own memory: peak RSS during the solve minus RSS after loading (MiB)."""
+    return _num(r.get("solve_peak_mib")) - _num(r.get("loaded_mib"))
+
+
 def _case_poses(case: Case, rows: list[dict]):
     found = next((r["poses"] for r in rows if r["case"] == case.name and "poses" in r), None)
     return found if found is not None else case.model_poses
@@ -325,20 +377,24 @@ def _same(r: dict) -> str:
 
 
 def _main_row(r: dict, poses) -> list[str]:
-    delta = _num(r.get("solve_peak_mib")) - _num(r.get("loaded_mib"))
+    delta = _delta(r)
     return [r["case"], str(poses) if poses is not None else "?", r["solver"], r["status"],
             _f(r.get("final_error"), ".10g"), _same(r), str(r.get("iterations", "–")),
             _f(r.get("seconds"), ".3f"), _f(r.get("ratio_to_gtsam_lm"), ".2f"), _f(r.get("over_ours"), ".2f"),
             _f(r.get("peak_mib"), ".0f"), _f(delta, ".0f"), r.get("stack", {}).get("text", "–")]
 
 
+def _count(v) -> str:
+    return "–" if v is None else str(v)
+
+
 def _split_row(r: dict) -> list[str]:
     per = r.get("split_per_iteration", {})
     total = r.get("split", {})
     cells = [_f(_num(per.get(k)) * 1e3, ".1f") for k in PHASES]
-    return [r["case"], str(r.get("iterations", "–")), str(r.get("linear_solves", "–")), *cells,
+    return [r["case"], r["solver"], str(r.get("iterations", "–")), str(r.get("linear_solves", "–")), *cells,
             _f(sum(_num(per.get(k)) for k in PHASES) * 1e3, ".1f"), _f(sum(_num(total.get(k)) for k in PHASES), ".3f"),
-            _f(r.get("cg_mean"), ".1f"), str(r.get("subdomains", "–")), str(r.get("coarse_size", "–")),
+            _f(r.get("cg_mean"), ".1f"), _count(r.get("subdomains")), _count(r.get("coarse_size")),
             r.get("linear_solver", {}).get("used", "–")]
 
 
@@ -351,6 +407,8 @@ def _header(report: dict) -> list[str]:
             f"- versions: Python {m['python']}, gtsam {m['gtsam']}, numpy {m['numpy']}, scipy {m['scipy']}, "
             f"gtsam-schwarz {m['gtsam_schwarz']}; local factorizations: {m.get('sparse_backend', '?')}",
             f"- ours: `SchwarzParams({', '.join(f'{k}={v!r}' for k, v in report['params'].items())})`; "
+            + "; ".join(f"{name}: the same with preconditioner={opts['preconditioner']!r}"
+                        for name, opts in OURS.items() if opts) + "; "
             "GTSAM: `LevenbergMarquardtOptimizer` with default parameters (Cholesky; PCG with block-Jacobi; "
             "SubgraphSolver; the iterative ones with CG tolerance 1e-8 relative and at most 20000 CG "
             "iterations, as ours: GTSAM's default 1e-3 stops LM early at a worse error); all stop on "
@@ -377,7 +435,7 @@ def _peer_header(report: dict) -> list[str]:
 LEGEND = ("*rel. diff vs LM*: |e − e_LM| / e_LM of the final error, ✓ when ≤ 1e-6; *seconds*: optimizer "
           "construction + optimize(), problem loading (and building g2o's graph) excluded; *÷ GTSAM LM*: seconds / "
           "GTSAM LM's seconds (for ours: the key figure ours / GTSAM-LM); *÷ ours*: that solver's seconds / ours "
-          "(GTSAM's iterative solvers and g2o; above 1: ours is faster); *peak MiB*: "
+          "(ours-direct, ours-schwarz, GTSAM's iterative solvers and g2o; above 1: ours is faster); *peak MiB*: "
           "the child's peak RSS; *Δ MiB*: the peak RSS during the solve minus the RSS right after loading the "
           "problem (the solver's own memory); *stack*: the "
           "child's stack limit.")
@@ -389,14 +447,37 @@ def markdown(report: dict) -> str:
     head = ["case", "poses", "solver", "status", "final error", "rel. diff vs LM", "its",
             "seconds", "÷ GTSAM LM", "÷ ours", "peak MiB", "Δ MiB", "stack"]
     out = _header(report) + _table(head, [_main_row(r, poses[r["case"]]) for r in rows]) + ["", LEGEND]
-    ours = [r for r in rows if r["solver"] == "ours" and r["status"] == "ok"]
+    ours = [r for r in rows if r["solver"] in OURS and r["status"] == "ok"]
     if ours:
-        head = ["case", "its", "solves", "linearize", "export", "setup", "CG", "update", "ms / it",
+        head = ["case", "solver", "its", "solves", "linearize", "export", "setup", "CG", "update", "ms / it",
                 "total s", "CG / solve", "subdomains", "coarse", "linear solver"]
         out += ["", "## Our time split per nonlinear iteration (ms)", ""] + _table(head, [_split_row(r) for r in ours])
-        out += [""] + [f"- {r['case']}: {r['linear_solver']['used']} ({r['linear_solver']['reason']})" for r in ours
-                       if r.get("linear_solver", {}).get("reason")]
+        out += [""] + [f"- {r['case']}: auto chose {r['linear_solver']['used']} ({r['linear_solver']['reason']})"
+                       for r in ours if r["solver"] == "ours" and r.get("linear_solver", {}).get("reason")]
+    pairs = report.get("direct_vs_schwarz") or direct_vs_schwarz(rows)
+    if pairs:
+        head = ["case", "direct s", "schwarz s", "schwarz ÷ direct", "peak ÷", "Δ ÷", "CG / solve",
+                "subdomains", "coarse", "auto chose", "auto s", "auto picked the faster"]
+        out += ["", f"## Direct vs Schwarz (ours-direct vs ours-schwarz = {OURS['ours-schwarz']['preconditioner']})",
+                ""] + _table(head, [_pair_row(p) for p in pairs])
+        out += ["", PAIR_LEGEND]
     return "\n".join(out) + "\n"
+
+
+PAIR_LEGEND = ("*schwarz ÷ direct*: ours-schwarz's seconds / ours-direct's (below 1: Schwarz is faster); *peak ÷* "
+               "and *Δ ÷*: the same for the child's peak RSS and for the solver's own memory (Δ MiB above); "
+               "*auto chose*: the linear solver our "
+               "default (`ours`, preconditioner auto) picked, its reason in the bullets above; *auto picked the "
+               "faster*: whether that is the faster of direct and Schwarz in this run.")
+
+
+def _pair_row(p: dict) -> list[str]:
+    yes_no = {True: "yes", False: "no", None: "–"}[p.get("auto_picked_faster")]
+    return [p["case"], _f(p.get("direct_seconds"), ".3f"), _f(p.get("schwarz_seconds"), ".3f"),
+            _f(p.get("schwarz_over_direct"), ".2f"), _f(p.get("peak_schwarz_over_direct"), ".2f"),
+            _f(p.get("delta_schwarz_over_direct"), ".2f"), _f(p.get("schwarz_cg_mean"), ".1f"),
+            _count(p.get("schwarz_subdomains")), _count(p.get("schwarz_coarse_size")),
+            p.get("auto_chose") or "–", _f(p.get("auto_seconds"), ".3f"), yes_no]
 
 
 # -- the command ---------------------------------------------------------------------------------
@@ -548,6 +629,7 @@ def run_bench(args) -> int:
     rows = benchmark(cases, solvers, overrides, datasets.resolve(), args.timeout, progress)
     report["cases"] = [{"name": c.name, "description": c.description, "poses": _case_poses(c, rows)} for c in cases]
     report["runs"] = rows
+    report["direct_vs_schwarz"] = direct_vs_schwarz(rows)
     text = markdown(report)
     if args.out:
         atomic_write(args.out, text, parents=True)
@@ -565,15 +647,18 @@ def add_bench(sub) -> None:
 
     p = sub.add_parser("bench", help="ours against GTSAM's LM (Cholesky, PCG, subgraph), one child process per run",
                        description="End-to-end solves of our default (LM, chordal start, automatic linear "
-                                   "solver) against GTSAM's LevenbergMarquardtOptimizer with Cholesky, PCG "
+                                   "solver), of the same forced to direct factorization and to rgdsw-linear Schwarz, "
+                                   "against GTSAM's LevenbergMarquardtOptimizer with Cholesky, PCG "
                                    "(block-Jacobi) and SubgraphSolver, and g2o; every run in its own child process "
                                    "(own peak memory; a crash or timeout is a row of the table).")
     p.add_argument("--size", choices=SIZES, default="small",
-                   help="tiny: a few seconds; small: model problems, M3500, city10000, sphere2500; "
-                        "large: model problems with 262k and 1M poses (default small)")
+                   help="tiny: a few seconds; small: model problems, M3500, city10000, sphere2500, a 100x100 "
+                        "lawnmower survey and an 8x24x24 3D survey; large: model problems with 262k and 1M poses, "
+                        "lawnmowers 600x600 and 1000x1000, 3D surveys 32x32x32 and 45x45x45 (default small)")
     p.add_argument("--cases", help="comma list of case names of the size (default: all)")
     p.add_argument("--solvers", help=f"comma list from {','.join(KNOWN_SOLVERS)} (default: all; "
-                                      f"{','.join(PEERS)} only when g2opy is installed: the [peers] extra)")
+                                      f"{','.join(PEERS)} only when g2opy is installed: the [peers] extra); "
+                                      "ours: preconditioner auto, ours-direct: direct, ours-schwarz: rgdsw-linear")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="a SchwarzParams override for ours (repeatable), e.g. --param subdomain_size=1000")
     p.add_argument("--timeout", type=positive_float, default=600.0, metavar="SECONDS",

@@ -486,19 +486,46 @@ def run_compare(args) -> int:
 
 
 # -- synth ---------------------------------------------------------------------------------------
+def grid_size(names: str):
+    """argparse type: sizes like ``ROWSxCOLS`` (``names`` = "ROWSxCOLS"), each an integer >= 1."""
+    count = len(names.split("x"))
+
+    def parse(text: str) -> tuple[int, ...]:
+        parts = text.lower().split("x")
+        try:
+            sizes = tuple(int(p) for p in parts)
+        except ValueError:
+            sizes = ()
+        if len(sizes) != count or min(sizes) < 1:
+            raise argparse.ArgumentTypeError(f"expected {names} with integers >= 1 (e.g. "
+                                             f"{'x'.join(['20'] * count)}), got {text!r}")
+        return sizes
+
+    return parse
+
+
 def add_synth(sub) -> None:
-    p = sub.add_parser("synth", help="write the paper's model problem as a g2o file",
-                       description="Write the paper's unit-square multi-loop problem (or its 3D helix) as g2o: "
-                                   "VERTEX lines are the dead-reckoning initial guess, EDGE lines the noisy "
-                                   "odometry and the loop closures.")
-    p.add_argument("--loops", type=positive_int, required=True, metavar="L", help="number of loops (= subdomains "
-                   "in the paper)")
-    p.add_argument("--points-per-side", type=positive_int, required=True, metavar="P",
+    p = sub.add_parser("synth", help="write a model problem (loops, lawnmower survey, 3D survey) as a g2o file",
+                       description="Write a model problem as g2o: the paper's unit-square multi-loop problem (or "
+                                   "its 3D helix), a 2D lawnmower survey of a grid, or a 3D survey of stacked "
+                                   "floors. VERTEX lines are the dead-reckoning initial guess, EDGE lines the noisy "
+                                   "odometry and the loop closures, FIX the prior's pose. Give exactly one of "
+                                   "--loops (with --points-per-side), --lawnmower or --survey3d.")
+    p.add_argument("--loops", type=positive_int, metavar="L", help="number of loops (= subdomains "
+                   "in the paper) of the paper's model problem; needs --points-per-side")
+    p.add_argument("--points-per-side", type=positive_int, metavar="P",
                    help="poses per side of the unit square (4P poses per loop)")
+    p.add_argument("--lawnmower", type=grid_size("ROWSxCOLS"), metavar="ROWSxCOLS",
+                   help="a 2D lawnmower survey (Pose2) of a ROWS x COLS grid, row by row, closures to the "
+                        "previous row: ROWS*COLS poses")
+    p.add_argument("--survey3d", type=grid_size("FLOORSxROWSxCOLS"), metavar="FLOORSxROWSxCOLS",
+                   help="a 3D survey (Pose3): FLOORS lawnmower grids stacked, closures to the previous row and to "
+                        "the floor below: FLOORS*ROWS*COLS poses")
     p.add_argument("--sigma", type=nonnegative_float, default=0.01, metavar="S",
-                   help="odometry noise standard deviation on x, y, theta (default 0.01)")
+                   help="odometry noise standard deviation on every tangent coordinate (x, y, theta in 2D) "
+                        "(default 0.01)")
     p.add_argument("--seed", type=nonnegative_int, default=0, metavar="K", help="noise seed (default 0)")
-    p.add_argument("--3d", dest="three_d", action="store_true", help="the helix (Pose3) variant")
+    p.add_argument("--3d", dest="three_d", action="store_true", help="with --loops: the helix (Pose3) variant")
     p.add_argument("-o", "--output", required=True, metavar="FILE.g2o", help="the g2o file to write (atomically)")
     p.add_argument("--ground-truth", metavar="FILE.g2o|FILE.tum",
                    help="also write the true poses (g2o: same edges, true vertices; tum: trajectory), for "
@@ -507,12 +534,44 @@ def add_synth(sub) -> None:
     p.set_defaults(run=run_synth)
 
 
+def _synth_problem(args):
+    """(a function that builds the problem the synth options ask for, its description); a usage error
+    for a wrong combination of options."""
+    from ..problems import helix_loops, lawnmower, square_loops, survey3d
+
+    given = [name for name, v in (("--loops", args.loops), ("--lawnmower", args.lawnmower),
+                                  ("--survey3d", args.survey3d)) if v is not None]
+    if len(given) != 1:
+        if given:
+            raise UsageError(f"give only one of --loops, --lawnmower and --survey3d (got {' and '.join(given)})")
+        raise UsageError("one of --loops L --points-per-side P, --lawnmower ROWSxCOLS or "
+                         "--survey3d FLOORSxROWSxCOLS is required")
+    noise = f"sigma {args.sigma}, seed {args.seed}"
+    if args.loops is not None:
+        if args.points_per_side is None:
+            raise UsageError("--points-per-side P is required with --loops")
+        make = helix_loops if args.three_d else square_loops
+        return (lambda: make(args.loops, args.points_per_side, sigma=args.sigma, seed=args.seed),
+                f"{args.loops} loops x {args.points_per_side} points per side, {noise}")
+    if args.points_per_side is not None:
+        raise UsageError(f"--points-per-side goes with --loops, not with {given[0]}")
+    if args.three_d:
+        raise UsageError(f"--3d goes with --loops (the helix); {given[0]} sets the dimension itself")
+    if args.lawnmower is not None:
+        rows, cols = args.lawnmower
+        return (lambda: lawnmower(rows, cols, sigma=args.sigma, seed=args.seed),
+                f"2D lawnmower {rows} x {cols}, {noise}")
+    floors, rows, cols = args.survey3d
+    return (lambda: survey3d(floors, rows, cols, sigma=args.sigma, seed=args.seed),
+            f"3D survey {floors} floors x {rows} x {cols}, {noise}")
+
+
 def run_synth(args) -> int:
     from ..io import GraphFileError, write_g2o
     from ..io.tum import write_tum
-    from ..problems import helix_loops, square_loops
 
     out = pathlib.Path(args.output)
+    make, what = _synth_problem(args)  # the options first, then the files, then the work
     check_output("-o", args.output)
     truth_format = check_output("--ground-truth", args.ground_truth, TRUTH_FORMATS) if args.ground_truth else None
     for path in (args.output, args.ground_truth):
@@ -520,8 +579,7 @@ def run_synth(args) -> int:
             raise UsageError(f"{path}: exists (use --force to overwrite)")
     if args.ground_truth and os.path.abspath(args.ground_truth) == os.path.abspath(args.output):
         raise UsageError(f"--ground-truth {args.ground_truth}: the same file as -o")
-    make = helix_loops if args.three_d else square_loops
-    prob = make(args.loops, args.points_per_side, sigma=args.sigma, seed=args.seed)
+    prob = make()
     try:
         write_g2o(out, prob.graph, prob.initial, force=True)
         if truth_format == "g2o":
@@ -533,8 +591,7 @@ def run_synth(args) -> int:
     except OSError as exc:
         raise UsageError(f"cannot write: {exc.strerror or exc}") from None
     also = f"; ground truth in {args.ground_truth}" if args.ground_truth else ""
-    print(f"wrote {out}: {prob.poses} poses, {prob.graph.size() - 1} edges "
-          f"({args.loops} loops x {args.points_per_side} points per side, sigma {args.sigma}, seed {args.seed}){also}")
+    print(f"wrote {out}: {prob.poses} poses, {prob.graph.size() - 1} edges ({what}){also}")
     return 0
 
 

@@ -48,9 +48,11 @@ def test_every_run_is_ok_and_ours_matches_gtsam_lm(report):
     assert all(r["status"] == "ok" for r in runs), [(r["case"], r["solver"], r["status"]) for r in runs]
     for case in ("sq8x16", "smallGrid3D"):
         by = {r["solver"]: r for r in runs if r["case"] == case}
-        ours, lm = by["ours"], by["gtsam-lm"]
-        assert abs(ours["final_error"] - lm["final_error"]) <= 1e-6 * lm["final_error"]
-        assert ours["rel_error_diff"] <= 1e-6 and ours["same_error"] is True
+        lm = by["gtsam-lm"]
+        for solver in ("ours", "ours-direct", "ours-schwarz"):
+            ours = by[solver]
+            assert abs(ours["final_error"] - lm["final_error"]) <= 1e-6 * lm["final_error"], solver
+            assert ours["rel_error_diff"] <= 1e-6 and ours["same_error"] is True, solver
 
 
 @pytest.mark.datasets
@@ -60,26 +62,44 @@ def test_ratios_memory_and_stack_figures(report):
         assert math.isfinite(r["ratio_to_gtsam_lm"]) and r["ratio_to_gtsam_lm"] > 0
         assert r["seconds"] > 0 and r["iterations"] >= 1 and r["poses"] > 0
         assert r["peak_mib"] >= r["loaded_mib"] > 0 and 0 < r["solve_peak_mib"] <= r["peak_mib"]
-        if r["solver"] in ("gtsam-lm-pcg", "gtsam-lm-subgraph"):
+        if r["solver"] in ("gtsam-lm-pcg", "gtsam-lm-subgraph", "ours-direct", "ours-schwarz"):
             assert math.isfinite(r["over_ours"]) and r["over_ours"] > 0
         # GTSAM's children run with the stack limit raised as far as allowed, ours with the inherited one
-        expected = STACK[1] if r["solver"] != "ours" else STACK[0]
+        expected = STACK[1] if not r["solver"].startswith("ours") else STACK[0]
         assert r["stack"]["bytes"] == _limit(expected)
 
 
 @pytest.mark.datasets
 @pytest.mark.slow
 def test_our_split_has_the_five_phases(report):
-    for r in (r for r in report["runs"] if r["solver"] == "ours"):
+    requested = {"ours": "auto", "ours-direct": "direct", "ours-schwarz": "rgdsw-linear"}
+    for r in (r for r in report["runs"] if r["solver"] in requested):
         assert set(r["split"]) == set(PHASES) and set(r["split_per_iteration"]) == set(PHASES)
         for k in PHASES:
             assert r["split"][k] >= 0
             assert r["split_per_iteration"][k] == pytest.approx(r["split"][k] / r["iterations"])
-        assert r["linear_solver"]["requested"] == "auto" and "predicted" in r["linear_solver"]["reason"]
+        assert r["linear_solver"]["requested"] == requested[r["solver"]]
+        if r["solver"] == "ours":
+            assert "predicted" in r["linear_solver"]["reason"]
+        else:
+            assert r["linear_solver"]["used"] == requested[r["solver"]]
         if r["linear_solver"]["used"] == "direct":
             assert r["cg_mean"] == 0 and r["subdomains"] is None
         else:
             assert r["cg_mean"] > 0 and r["subdomains"] >= 1 and r["coarse_size"] >= 0
+
+
+@pytest.mark.datasets
+@pytest.mark.slow
+def test_direct_vs_schwarz_section_per_case(report):
+    pairs = {p["case"]: p for p in report["direct_vs_schwarz"]}
+    assert set(pairs) == {"sq8x16", "smallGrid3D"}
+    for case, p in pairs.items():
+        by = {r["solver"]: r for r in report["runs"] if r["case"] == case}
+        assert p["schwarz_over_direct"] == pytest.approx(by["ours-schwarz"]["seconds"] / by["ours-direct"]["seconds"])
+        assert p["faster"] == ("schwarz" if p["schwarz_over_direct"] < 1 else "direct")
+        assert p["auto_chose"] == by["ours"]["linear_solver"]["used"]
+        assert isinstance(p["auto_picked_faster"], bool) and p["schwarz_cg_mean"] > 0
 
 
 @pytest.mark.datasets
@@ -98,6 +118,7 @@ def test_markdown_table_and_out_file(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "| case | poses | solver |" in proc.stdout and "| sq8x16 | 513 | ours | ok |" in proc.stdout
     assert "time split per nonlinear iteration" in proc.stdout and "subdomains=2" in proc.stdout
+    assert "Direct vs Schwarz" not in proc.stdout  # no ours-direct / ours-schwarz rows asked for
     text = out.read_text()
     assert text.startswith("# Benchmark: size tiny") and "| sq8x16 | 513 | gtsam-lm | ok |" in text
     assert "--param subdomains=2" in text
