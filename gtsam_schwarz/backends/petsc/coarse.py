@@ -14,6 +14,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ...coarse import interface_values
+from ...coarse.modes import COMPONENT_SPACES, column_subdomains
 from ...dd.decomposition import Decomposition
 from ...dd.geometry import VertexGeometry
 from ...dd.interface import Interface
@@ -89,10 +90,18 @@ class LocalCoarseBasis:
         return interface_values(self.interface, self.offsets, self.kind, geometry, self.rotation,
                                 self.translation_mask)
 
-    def _compression(self, column_component: np.ndarray) -> dict:
-        """Subdomain i sees only the K_i columns whose subdomain set contains i: column c of
-        subdomain i goes to slot k of the compressed right-hand side (one table for all)."""
-        C = sp.csr_matrix(self.interface.component_subdomains()[column_component])  # column × subdomain
+    def column_subdomains(self, rows, cols, column_component) -> sp.csr_matrix:
+        """Column × subdomain incidence: the subdomains whose interiors each column's extension
+        reaches (its component's set for gdsw/rgdsw, the union over its support for the linear spaces)."""
+        if self.kind in COMPONENT_SPACES:
+            return sp.csr_matrix(self.interface.component_subdomains()[column_component])
+        return column_subdomains(self.interface, self.offsets, rows, cols, len(column_component))
+
+    def _compression(self, C: sp.csr_matrix) -> dict:
+        """Subdomain i sees only the K_i columns whose subdomain set contains i (``C``: column ×
+        subdomain): column c of subdomain i goes to slot k of the compressed right-hand side."""
+        C = sp.csr_matrix(C)
+        C.sort_indices()
         signature = (C.shape, C.indptr.copy(), C.indices.copy())
         if self._plan is not None and self._plan[0][0] == C.shape and all(
                 np.array_equal(a, b) for a, b in zip(self._plan[0][1:], signature[1:])):
@@ -127,7 +136,7 @@ class LocalCoarseBasis:
             if self._pattern is None or not self._pattern.matches(A):
                 self._rows, self._pattern, self._factor = _Rows(self.interior, A, self.gamma), SparsityPattern(A), None
             R = self._rows
-            plan = self._compression(column_component)
+            plan = self._compression(self.column_subdomains(rows, cols, column_component))
             Phi_J = sp.csr_matrix((vals, (rows, cols)), shape=(self.n, nc))[R.J]
             S = (R.A_IJ(A) @ Phi_J).tocoo()  # A_IΓ Φ_Γ: nonzero only in columns of the row's subdomain
             key = self.sub[S.row] * np.int64(nc) + S.col

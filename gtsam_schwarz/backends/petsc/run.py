@@ -1,13 +1,15 @@
 """MPI entry point: ``mpiexec -n K python -m gtsam_schwarz.backends.petsc.run FILE [--json] [-o OUT]``.
 
-Every rank reads the file and runs the same serial linearization (see docs/distributed.md for what
-changes at 100M poses); the linear solves run on PETSc across the K ranks
-(:class:`~gtsam_schwarz.backends.petsc.solver.PetscSchwarzSolver`). Only rank 0 prints (a line per
+Every rank reads the file; each rank linearizes only the factors it owns and assembles them into
+PETSc (:class:`~gtsam_schwarz.backends.petsc.distributed.DistributedOptimizer`; ``--replicated``:
+every rank linearizes the whole graph, as before); the linear solves run on PETSc across the K ranks
+(:class:`~gtsam_schwarz.backends.petsc.solver.PetscSchwarzSolver`). See docs/distributed.md for what
+changes at 100M poses. Only rank 0 prints (a line per
 iteration and a summary, or one JSON object with ``--json``) and writes ``-o``. A usage error is one
 line on stderr and exit code 2, as with ``gtsam-schwarz solve``.
 
-``--square-loops L P`` solves the paper's model problem (``problems.square_loops(L, P)``) instead of
-a file. ``--serial`` runs the serial linear solver in the same driver (for comparisons).
+``--square-loops L P`` solves the paper's model problem (``problems.square_loops(L, P)``),
+``--lawnmower R C`` the survey ``problems.survey.lawnmower(R, C)``, instead of a file. ``--serial`` runs the serial linear solver in the same driver (for comparisons).
 """
 
 from __future__ import annotations
@@ -68,6 +70,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("file", nargs="?", help="g2o (SE2 / SE3:QUAT) or TORO file (or use --square-loops)")
     p.add_argument("--square-loops", nargs=2, type=_positive(int), metavar=("LOOPS", "POINTS"),
                    help="the paper's model problem instead of a file (sigma 0.01, seed 0)")
+    p.add_argument("--lawnmower", nargs=2, type=_positive(int), metavar=("ROWS", "COLS"),
+                   help="the lawnmower survey over a ROWS x COLS grid instead of a file")
     p.add_argument("--method", choices=METHODS, default="lm")
     p.add_argument("--preconditioner", choices=LINEAR_SOLVERS, default="gdsw")
     p.add_argument("--subdomains", type=_positive(int), default=None, metavar="N")
@@ -79,6 +83,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--local-solver", choices=("auto", "cholmod", "petsc", "mumps"), default="auto",
                    help="subdomain factorizations (default: CHOLMOD when this PETSc has it)")
     p.add_argument("--serial", action="store_true", help="the serial linear solver instead of PETSc (one rank)")
+    p.add_argument("--replicated", action="store_true",
+                   help="every rank linearizes the whole graph (default: each rank its own factors)")
     p.add_argument("-o", "--output", metavar="OUT.g2o|OUT.tum")
     p.add_argument("--force", action="store_true", help="allow -o to overwrite the input file")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout (rank 0)")
@@ -96,8 +102,16 @@ def _load(args):
         return pb.graph, pb.initial, {"file": f"square_loops({loops}, {points})", "poses": poses,
                                       "edges": pb.graph.size() - 1, "dimension": 2, "format": "model",
                                       "initial_guess": "dead reckoning"}, None
+    if args.lawnmower:
+        from ...problems.survey import lawnmower
+
+        rows, cols = args.lawnmower
+        pb = lawnmower(rows, cols)
+        return pb.graph, pb.initial, {"file": f"lawnmower({rows}, {cols})", "poses": pb.initial.size(),
+                                      "edges": pb.graph.size() - 1, "dimension": 2, "format": "model",
+                                      "initial_guess": "dead reckoning"}, None
     if not args.file:
-        raise UsageError("give a FILE or --square-loops LOOPS POINTS")
+        raise UsageError("give a FILE, --square-loops LOOPS POINTS or --lawnmower ROWS COLS")
     from ...io import GraphFileError, load_graph
 
     path = pathlib.Path(args.file)
@@ -136,6 +150,7 @@ def _check_output(args):
 def solve(args, comm) -> dict:
     """Run the optimizer on every rank; returns the report (identical decisions on every rank)."""
     from ...nonlinear import SchwarzOptimizer, SchwarzParams
+    from .distributed import DistributedOptimizer
     from .solver import PetscSchwarzSolver
 
     rank = comm.Get_rank()
@@ -151,12 +166,17 @@ def solve(args, comm) -> dict:
                            forcing="eisenstat-walker" if args.inexact else "none")
     comm.Barrier()
     t0, cpu0 = time.perf_counter(), time.process_time()
-    opt = SchwarzOptimizer(graph, initial, params)
     linear = None
-    if not args.serial:
+    if args.serial:
+        opt = SchwarzOptimizer(graph, initial, params)
+    elif args.replicated:
+        opt = SchwarzOptimizer(graph, initial, params)
         linear = PetscSchwarzSolver(opt.nonlinear_params.linear_solver, opt.linearizer.offsets,
                                     opt.linearizer.translation_mask(), local_solver=args.local_solver)
         opt.linear_solver = linear
+    else:
+        opt = DistributedOptimizer(graph, initial, params, local_solver=args.local_solver)
+        linear = opt.linear_solver
     import warnings
 
     with warnings.catch_warnings():
@@ -176,7 +196,12 @@ def solve(args, comm) -> dict:
         nnz = int(linear.A.getInfo(PETSc.Mat.InfoType.LOCAL)["nz_used"]) if linear.A is not None else 0
         work = {"rows": hi - lo, "nnz": nnz, "cpu_seconds": time.process_time() - cpu0,
                 "subdomains": int(len(linear.layout.subdomains(rank))) if len(linear.layout.subdomain_rank) else 0,
-                "seconds": {k: float(v) for k, v in linear.timings.items()}}
+                "seconds": {k: float(v) for k, v in linear.timings.items()},
+                "linearization": "distributed" if getattr(opt, "distributed", False) else "replicated",
+                "factors": int(opt.part.n_factors) if getattr(opt, "part", None) is not None else None,
+                "poses_held": int(len(opt.part.hold)) if getattr(opt, "part", None) is not None else None}
+        if getattr(opt, "part", None) is not None:
+            work["seconds"].update({f"linearize_{k}": float(v) for k, v in opt.part.seconds.items()})
         per_rank = comm.gather(work, root=0)
     phase_max = {k: float(comm.allreduce(v, op=_max())) for k, v in split.items()}
     report = {
@@ -193,6 +218,9 @@ def solve(args, comm) -> dict:
                     "setup": split["setup"], "cg": split["cg"], "update": split["update"]},
         "seconds_max_over_ranks": {"linearize": phase_max["linearize"] + phase_max["export"],
                                    "setup": phase_max["setup"], "cg": phase_max["cg"], "update": phase_max["update"]},
+        "linearization": "serial" if args.serial else ("distributed" if getattr(opt, "distributed", False)
+                                                       else "replicated"),
+        "replicated_reason": getattr(opt, "replicated", "") or None,
         "ranks_agree": bool(agree), "per_rank": per_rank, "output": args.output,
     }
     if args.output and rank == 0:

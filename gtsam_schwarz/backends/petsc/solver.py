@@ -90,19 +90,20 @@ def cholmod_available() -> bool:
     return _CHOLMOD
 
 
-def _kind(name: str):
-    """("two-level", kind, rotation) | ("one-level",) | ("jacobi",) | ("pbjacobi",) | ("none",) |
-    ("direct",) for a registered preconditioner name."""
+def _kind(name: str, grouping: str = "components"):
+    """("two-level", kind, rotation, interface grouping) | ("one-level",) | ("jacobi",) | ("pbjacobi",) |
+    ("none",) | ("direct",) for a registered preconditioner name (``grouping``: the params' default)."""
     if name == "direct":
         return ("direct",)
     if name == "auto":  # the serial cost model's choice is per graph; over MPI the Schwarz solver is the point
-        return ("two-level", "gdsw", True)
+        return ("two-level", "gdsw", True, grouping)
     try:
         cls, fixed = REGISTRY[name]
     except KeyError:
         raise ValueError(f"unknown preconditioner {name!r}") from None
     if issubclass(cls, TwoLevelSchwarz):
-        return ("two-level", fixed.get("kind", "gdsw"), fixed.get("rotation", True))
+        return ("two-level", fixed.get("kind", "gdsw"), fixed.get("rotation", True),
+                fixed.get("interface_grouping", grouping))
     if issubclass(cls, BlockJacobi):
         return ("pbjacobi",)
     if issubclass(cls, AdditiveSchwarz):
@@ -138,7 +139,7 @@ class PetscSchwarzSolver(PreconditionedCG):
         self.PETSc = PETSc = petsc()
         self.comm = comm if comm is not None else PETSc.COMM_WORLD
         self.rank, self.size = self.comm.getRank(), self.comm.getSize()
-        self.kind = _kind(params.preconditioner)
+        self.kind = _kind(params.preconditioner, params.interface_grouping)
         if local_solver == "auto":
             local_solver = "cholmod" if cholmod_available() else "petsc"
         if local_solver not in ("cholmod", "petsc", "mumps"):
@@ -156,7 +157,9 @@ class PetscSchwarzSolver(PreconditionedCG):
         self._basis = None  # LocalCoarseBasis
         self._P_pattern = None
         self._coarse_size = 0
-        self._scatter = self._xall = self._b = self._x = None
+        self._scatter = self._xall = self._b = self._x = self._d = None
+        self._b_external = False  # _b is the caller's Vec (solve_distributed): not ours to destroy
+        self._orig_rows = None  # (permutation, indices, indptr): this rank's rows of A, original numbering
         self.timings = {"assemble": 0.0, "coarse_basis": 0.0, "pc_setup": 0.0, "ksp_solve": 0.0, "gather": 0.0}
 
     # -- layout and assembly --------------------------------------------------------------------
@@ -211,8 +214,8 @@ class PetscSchwarzSolver(PreconditionedCG):
         lay = self.layout
         lo, hi = lay.rows(self.rank)
         if self._basis is None:
-            _, kind, rotation = self.kind
-            interface = find_interface(self.decomposition, self.params.interface_grouping)
+            _, kind, rotation, grouping = self.kind
+            interface = find_interface(self.decomposition, grouping)
             self._basis = LocalCoarseBasis(self.decomposition, interface, lay.subdomains(self.rank),
                                            lay.dof_rank == self.rank, kind, rotation, self.translation_mask)
         rigid = self.params.coarse_modes == "rigid"
@@ -351,12 +354,13 @@ class PetscSchwarzSolver(PreconditionedCG):
         ksp.setFromOptions()
         self.ksp = ksp
 
-    def _build(self, H, geometry):
-        """New numbers into the preconditioner (rebuilt: factorizations, Φ, A₀)."""
+    def _build(self, H_rows, geometry):
+        """New numbers into the preconditioner (rebuilt: factorizations, Φ, A₀); ``H_rows()`` gives H's
+        rows of this rank in the original numbering (for the coarse basis)."""
         t0 = time.perf_counter()
         recreate = self.ksp is None
         if self.kind[0] == "two-level":
-            recreate |= self._coarse(H, geometry)
+            recreate |= self._coarse(H_rows(), geometry)
         t1 = time.perf_counter()
         if self.kind[0] == "two-level" and self.coarse_matrix == "harmonic":
             self._harmonic_coarse_matrix(new=recreate)
@@ -400,47 +404,93 @@ class PetscSchwarzSolver(PreconditionedCG):
     def solve(self, H, rhs, tol, geometry):
         """CG to relative residual ``tol`` (same lagging decisions as PreconditionedCG); the step x
         in the original numbering, complete on every rank."""
-        p = self.params
         t0 = time.perf_counter()
         H = sp.csr_matrix(H)
         created = self._assemble(H)
         lay = self.layout
         lo, hi = lay.rows(self.rank)
-        t_asm = time.perf_counter()
-        self.timings["assemble"] += t_asm - t0
+        self.timings["assemble"] += time.perf_counter() - t0
+        rhs = np.asarray(rhs, dtype=float)
+        self._b.setArray(rhs[lay.order[lo:hi]])
+        result = self._solve_assembled(created, tol, geometry, lambda: H, float(np.linalg.norm(rhs)), t0)
+        t3 = time.perf_counter()
+        self._scatter.scatter(self._x, self._xall, addv=self.PETSc.InsertMode.INSERT,
+                              mode=self.PETSc.ScatterMode.FORWARD)
+        result.x = lay.unpermute(self._xall.getArray(readonly=True).copy())
+        self.timings["gather"] += time.perf_counter() - t3
+        return result
+
+    def set_layout(self, structure_matrix: sp.spmatrix) -> RankLayout:
+        """Decompose (once) from a matrix with H's block pattern and fix the rows of every rank."""
+        return self._layout(sp.csr_matrix(structure_matrix))
+
+    def solve_distributed(self, H, damping: np.ndarray | None, b, tol, geometry):
+        """(H + diag(damping)) x = b with H and b already distributed (PETSc Mat and Vec in the layout's
+        numbering, this rank's rows; ``damping``: this rank's rows or None). ``result.x`` is the
+        solver's own distributed Vec (valid until the next solve); nothing is gathered."""
+        PETSc = self.PETSc
+        t0 = time.perf_counter()
+        lay = self.layout
+        lo, hi = lay.rows(self.rank)
+        created = self.A is None
+        if created:
+            self.A = H.duplicate(copy=True)
+            self.A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
+            self._x, self._d = self.A.createVecs()
+            self._orig_rows = None
+        else:
+            H.copy(self.A, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+        if damping is not None:
+            self._d.setArray(np.asarray(damping, dtype=float))
+            self.A.setDiagonal(self._d, addv=PETSc.InsertMode.ADD_VALUES)
+        self._b, self._b_external = b, True
+        self.timings["assemble"] += time.perf_counter() - t0
+        return self._solve_assembled(created, tol, geometry, self._local_rows, float(b.norm()), t0)
+
+    def _local_rows(self) -> sp.csr_matrix:
+        """This rank's rows of A in the original numbering, as an n × n CSR (other rows empty): what
+        the coarse basis reads (the interiors of the rank's subdomains)."""
+        lay = self.layout
+        lo, hi = lay.rows(self.rank)
+        indptr, indices, data = self.A.getValuesCSR()
+        if self._orig_rows is None or len(self._orig_rows[0]) != len(data):
+            r = lay.order[lo + np.repeat(np.arange(hi - lo), np.diff(indptr))]
+            C = sp.csr_matrix((np.arange(1, len(data) + 1, dtype=float), (r, lay.order[indices])), shape=(lay.n, lay.n))
+            C.sort_indices()
+            self._orig_rows = (C.data.astype(np.int64) - 1, C.indices, C.indptr)
+        perm, cols, ptr = self._orig_rows
+        return sp.csr_matrix((data[perm], cols, ptr), shape=(lay.n, lay.n))
+
+    def _solve_assembled(self, created: bool, tol: float, geometry, H_rows, bnorm: float, t0: float) -> SolveResult:
+        """The KSP solve of the assembled ``self.A`` x = ``self._b`` with the lagging policy;
+        ``H_rows()``: H with (at least) this rank's rows in the original numbering, for the coarse basis."""
+        p = self.params
         cap = None if created else self._lag_cap()
         lagged = cap is not None
         self._rebuilt = not lagged
         if lagged:
             self.ksp.getPC().setReusePreconditioner(True)
         else:
-            self._build(H, geometry)
+            self._build(H_rows, geometry)
         setup = time.perf_counter() - t0
-        rhs = np.asarray(rhs, dtype=float)
-        self._b.setArray(rhs[lay.order[lo:hi]])
-        bnorm = float(np.linalg.norm(rhs))
-        maxiter = cap if lagged else (p.cg_max_iterations or 10 * lay.n)
+        n = self.layout.n
+        maxiter = cap if lagged else (p.cg_max_iterations or 10 * n)
         its, reason, history, lmin, lmax = self._ksp_solve(tol, maxiter, warm=False)
         residuals = list(history / bnorm) if bnorm > 0 else [0.0]
         converged = reason > 0
         if lagged and not converged:  # stale: rebuild for H, continue from x
             t2 = time.perf_counter()
             self._rebuilt = True
-            self._build(H, geometry)
+            self._build(H_rows, geometry)
             setup += time.perf_counter() - t2
-            more, reason, history, lmin, lmax = self._ksp_solve(tol, p.cg_max_iterations or 10 * lay.n, warm=True)
+            more, reason, history, lmin, lmax = self._ksp_solve(tol, p.cg_max_iterations or 10 * n, warm=True)
             its += more
             residuals += list(history[1:] / bnorm) if bnorm > 0 else []
             converged = reason > 0
             self._moved = 0.0  # the warm-started count is no reference: keep the previous one
         elif self._rebuilt:
             self._cg_after_build, self._moved = its, 0.0
-        t3 = time.perf_counter()
-        self._scatter.scatter(self._x, self._xall, addv=self.PETSc.InsertMode.INSERT,
-                              mode=self.PETSc.ScatterMode.FORWARD)
-        x = lay.unpermute(self._xall.getArray(readonly=True).copy())
-        self.timings["gather"] += time.perf_counter() - t3
-        return SolveResult(x=x, iterations=its, converged=converged, lambda_min=lmin, lambda_max=lmax,
+        return SolveResult(x=self._x, iterations=its, converged=converged, lambda_min=lmin, lambda_max=lmax,
                            residuals=residuals, tolerance=tol if self.kind[0] != "direct" else 0.0,
                            setup_seconds=setup, coarse_size=self._coarse_size, rebuilt=self._rebuilt,
                            lagged=lagged)
@@ -457,7 +507,8 @@ class PetscSchwarzSolver(PreconditionedCG):
         return lay.unpermute(self._xall.getArray(readonly=True).copy())
 
     def destroy(self) -> None:
-        for o in (self.ksp, self.A, self.P, self.A0, self._b, self._x, self._xall, self._scatter):
+        for o in (self.ksp, self.A, self.P, self.A0, None if self._b_external else self._b, self._x, self._xall,
+                  self._scatter, self._d):
             if o is not None:
                 o.destroy()
         self.ksp = self.A = self.P = self.A0 = None
