@@ -35,9 +35,8 @@ def _mpirun(ranks: int, argv: list[str]) -> dict:
     return json.loads(lines[0])
 
 
-def _run(ranks: int, *args: str) -> dict:
-    return _mpirun(ranks, launch_command(ranks, ["--square-loops", str(LOOPS), str(POINTS), "--json", *args],
-                                         oversubscribe=True))
+def _run(ranks: int, *args: str, problem=("--square-loops", str(LOOPS), str(POINTS))) -> dict:
+    return _mpirun(ranks, launch_command(ranks, [*problem, "--json", *args], oversubscribe=True))
 
 
 @pytest.fixture(scope="module")
@@ -71,16 +70,81 @@ def _assert_matches_serial(report: dict, serial) -> None:
 
 @needs_mpi
 def test_one_rank_equals_serial(serial):
-    _assert_matches_serial(_run(1, *ARGS), serial)
+    report = _run(1, *ARGS)
+    _assert_matches_serial(report, serial)
+    assert report["linearization"] == "distributed"
+    assert report["per_rank"][0]["factors"] == serial.graph.size()
 
 
 @needs_mpi
 def test_two_ranks_equal_serial(serial):
     report = _run(2, *ARGS)
     _assert_matches_serial(report, serial)
-    assert report["ranks"] == 2
+    assert report["ranks"] == 2 and report["linearization"] == "distributed"
     rows = [r["rows"] for r in report["per_rank"]]
     assert sum(rows) == int(serial.linearizer.offsets[-1]) and min(rows) > 0
+    factors = [r["factors"] for r in report["per_rank"]]  # each factor linearized by exactly one rank
+    assert sum(factors) == serial.graph.size() and min(factors) > 0
+    held = [r["poses_held"] for r in report["per_rank"]]
+    assert max(held) < report["poses"] <= sum(held)
+
+
+@needs_mpi
+def test_two_ranks_replicated_linearization_equals_serial(serial):
+    report = _run(2, *ARGS, "--replicated")
+    _assert_matches_serial(report, serial)
+    assert report["linearization"] == "replicated"
+
+
+LAWNMOWER = (12, 12)
+
+
+@needs_mpi
+@pytest.mark.parametrize("name", ["gdsw-linear", "rgdsw-linear"])
+def test_linear_coarse_spaces_on_two_ranks_equal_serial(name):
+    """gdsw-linear / rgdsw-linear (two-hop interface entities, hat functions) on PETSc: the serial
+    final error, coarse size and CG counts on a lawnmower survey."""
+    import gtsam_schwarz as gs
+    from gtsam_schwarz.problems.survey import lawnmower
+
+    pb = lawnmower(*LAWNMOWER)
+    serial = gs.SchwarzOptimizer(pb.graph, pb.initial, gs.SchwarzParams(preconditioner=name, subdomains=6))
+    serial.optimize()
+    report = _run(2, "--preconditioner", name, "--subdomains", "6",
+                  problem=("--lawnmower", *(str(v) for v in LAWNMOWER)))
+    _assert_matches_serial(report, serial)
+    assert report["coarse_size"] > 0 and report["linearization"] == "distributed"
+
+
+@pytest.fixture(scope="module")
+def checks():
+    """tests/backends/mpi_checks.py on 2 ranks (one run for the tests below)."""
+    if not READY:
+        pytest.skip(WHY)
+    cmd = mpiexec_command(2, oversubscribe=True) + [
+        __import__("sys").executable, str(HERE / "mpi_checks.py"), str(LOOPS), str(POINTS)]
+    return _mpirun(2, cmd)
+
+
+@needs_mpi
+def test_per_rank_linearization_equals_the_whole_graph(checks):
+    """Each rank linearizes its own factors: the assembled H and g equal the whole graph's, and the
+    optimizer gives the serial poses and error (Pose2 with and without a prior, Pose3)."""
+    cases = checks["distributed"]
+    assert [c["problem"] for c in cases] == ["square_loops", "no_prior", "lawnmower", "survey3d"]
+    for case in cases:
+        assert case["distributed"], case
+        assert sum(case["ranks_factors"]) == case["factors"] and min(case["ranks_factors"]) > 0, case
+        assert case["H_error"] < 1e-12 and case["g_error"] < 1e-12, case
+        ours, theirs = case["final_error"]
+        assert ours == pytest.approx(theirs, rel=1e-8), case
+        assert len(set(case["errors_on_ranks"])) == 1, case
+        a, b = (np.array(c) for c in case["cg"])
+        assert len(a) == len(b) and np.all(np.abs(a - b) <= np.maximum(1, 0.1 * b)), case
+        assert case["anchored"][0] == case["anchored"][1], case
+        assert case["pose_difference"] < 1e-8, case
+        assert case["values_on_rank"] == [True, False], case
+    assert cases[1]["anchored"][0] == [0]  # the prior-free graph is anchored at its first pose
 
 
 @needs_mpi
@@ -93,12 +157,10 @@ def test_two_ranks_lm_writes_only_on_rank_zero(tmp_path):
 
 
 @needs_mpi
-def test_preconditioner_and_cg_equal_serial_on_two_ranks():
+def test_preconditioner_and_cg_equal_serial_on_two_ranks(checks):
     """M⁻¹x of PETSc (ASM + PCMG with Φ) equals the serial TwoLevelSchwarz / AdditiveSchwarz, after the
     first build and after a numeric update; one CG solve gives the serial iterations and solution."""
-    cmd = mpiexec_command(2, oversubscribe=True) + [
-        __import__("sys").executable, str(HERE / "mpi_checks.py"), str(LOOPS), str(POINTS)]
-    out = _mpirun(2, cmd)
+    out = checks
     for case in out["cases"]:
         assert max(case["apply"]) < 1e-10, case
         assert max(case["x_error"]) < 1e-8, case
@@ -162,9 +224,10 @@ def test_local_coarse_basis_rows_add_up_to_the_serial_basis():
     state = lin.state(pb.initial)
     H = sp.csr_matrix(lin.linearize(state).H)
     geometry = lin.geometry(state)
-    for partition, kind, N, ranks in (("segments", "gdsw", 8, 2), ("metis", "gdsw", 6, 3), ("metis", "rgdsw", 7, 4)):
+    for partition, kind, N, ranks in (("segments", "gdsw", 8, 2), ("metis", "gdsw", 6, 3), ("metis", "rgdsw", 7, 4),
+                                      ("metis", "gdsw-linear", 6, 2), ("metis", "rgdsw-linear", 6, 3)):
         dec = decompose(GraphStructure.from_matrix(H, lin.offsets), N, partition, 1)
-        interface = find_interface(dec)
+        interface = find_interface(dec, "two-hop" if kind.endswith("linear") else "components")
         ref = gdsw_coarse_space(H, dec, interface, kind, geometry, True, lin.translation_mask()).Phi
         lay = rank_layout(dec, ranks)
         total = sp.csr_matrix(ref.shape)
@@ -176,6 +239,18 @@ def test_local_coarse_basis_rows_add_up_to_the_serial_basis():
             assert np.all(lay.dof_rank[rows] == r)
             total = total + sp.csr_matrix((vals, (rows, cols)), shape=(H.shape[0], nc))
         assert abs(total - ref).max() < 1e-12 * abs(ref).max()
+
+
+def test_replicated_reason_names_what_cannot_be_split():
+    """Pure native pose graphs are linearized per rank; GTSAM's linearizer falls back (no PETSc needed)."""
+    import gtsam_schwarz as gs
+    from gtsam_schwarz.backends.petsc.distributed import replicated_reason
+    from gtsam_schwarz.linearization.gtsam_export import GtsamLinearizer
+    from gtsam_schwarz.linearization.native import NativeLinearizer
+
+    pb = gs.square_loops(LOOPS, POINTS)
+    assert replicated_reason(NativeLinearizer(pb.graph, pb.initial)) == ""
+    assert "not the native" in replicated_reason(GtsamLinearizer(pb.graph, pb.initial))
 
 
 def test_mpiexec_command_has_the_open_mpi_flags(monkeypatch):
