@@ -13,6 +13,7 @@ from scipy.sparse import csgraph
 from scipy.sparse.linalg import splu
 
 from ..krylov import pcg
+from ..solvers.sparse import SparseCholesky
 
 __all__ = ["ChordalResult", "chordal_initialization", "pose2_from", "project_to_so"]
 
@@ -43,6 +44,14 @@ def pose2_from(result: ChordalResult) -> np.ndarray:
 
 def project_to_so(M: np.ndarray) -> np.ndarray:
     """Nearest rotations argmin_{R∈SO(d)} ‖R − M_k‖_F = U diag(1,…,det UVᵀ) Vᵀ, M (k,d,d)."""
+    if M.shape[1:] == (2, 2):  # 2D: the rotation part (a, b) of M = aI + bJ + (reflection), normalized
+        a = M[:, 0, 0] + M[:, 1, 1]
+        b = M[:, 1, 0] - M[:, 0, 1]
+        r = np.hypot(a, b)
+        ok = r > 1e-300 * np.maximum(np.abs(M).max(axis=(1, 2)), 1.0)
+        if np.all(ok):
+            c, s = a / r, b / r
+            return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
     U, _, Vt = np.linalg.svd(M)
     det = np.linalg.det(U @ Vt)
     U = U.copy()
@@ -154,9 +163,9 @@ def _anchors(n: int, edges: np.ndarray, anchor, anchor_pose, d: int):
 def _normal_equations(n: int, d: int, i, j, S, W, c=None):
     """A, b of min Σ ‖x_j − S_ij x_i − c_ij‖²_W (blocks d×d): A_ii += SᵀWS, A_jj += W,
     A_ij −= SᵀW, A_ji −= WS; b_i −= SᵀWc, b_j += Wc."""
-    St = np.swapaxes(S, 1, 2)
-    StW = St @ W
-    blocks = np.concatenate([StW @ S, W, -StW, -(W @ S)])
+    parts = _edge_blocks(S, W)
+    StW = -parts[2]
+    blocks = np.concatenate(parts)
     rows = np.concatenate([i, j, i, j])
     cols = np.concatenate([i, j, j, i])
     a = np.arange(d)
@@ -169,6 +178,80 @@ def _normal_equations(n: int, d: int, i, j, S, W, c=None):
         np.add.at(b, i, -np.einsum("kab,kb->ka", StW, c))
         np.add.at(b, j, Wc)
     return A, b.reshape(n * d)
+
+
+def _edge_blocks(S, W) -> tuple:
+    """The blocks (ii, jj, ij, ji) = (SᵀWS, W, −SᵀW, −WS) that one edge adds to the normal equations."""
+    StW = np.swapaxes(S, 1, 2) @ W
+    return StW @ S, W, -StW, -(W @ S)
+
+
+class _BlockSystem:
+    """The normal equations' CSR pattern, built once for the rotation and the translation system of the
+    direct path: d×d blocks on every node's diagonal and both sides of every edge. Anchored nodes' rows
+    and columns hold the identity (their values move to the right-hand side), so both anchored solves
+    share one matrix pattern and one symbolic factorization, and nothing is sliced."""
+
+    def __init__(self, n: int, d: int, i: np.ndarray, j: np.ndarray, anchors: np.ndarray):
+        self.n, self.d = n, d
+        m = len(i)
+        lo, hi = np.minimum(i, j), np.maximum(i, j)
+        key = lo * n + hi
+        order = np.argsort(key, kind="stable")
+        ks = key[order]
+        first = np.ones(m, dtype=bool)
+        np.not_equal(ks[1:], ks[:-1], out=first[1:])
+        pid = np.empty(m, dtype=np.int64)
+        pid[order] = np.cumsum(first) - 1
+        ulo, uhi = lo[order][first], hi[order][first]   # distinct node pairs, sorted by (lo, hi)
+        npairs = len(ulo)
+        nup, nlow = np.bincount(ulo, minlength=n), np.bincount(uhi, minlength=n)
+        rowlen = nup + nlow + 1
+        bptr = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(rowlen, out=bptr[1:])
+        # block positions in row-major order: row v holds its lower pairs, its diagonal, its upper pairs
+        upper = bptr[ulo] + nlow[ulo] + 1 + np.arange(npairs) - (np.cumsum(nup) - nup)[ulo]
+        by_hi = np.argsort(uhi, kind="stable")   # keeps lo increasing within each hi
+        lower = np.empty(npairs, dtype=np.int64)
+        lower[by_hi] = bptr[uhi[by_hi]] + np.arange(npairs) - (np.cumsum(nlow) - nlow)[uhi[by_hi]]
+        diag = bptr[:-1] + nlow
+        nb = int(bptr[-1])
+        bcols = np.empty(nb, dtype=np.int64)
+        bcols[upper], bcols[lower], bcols[diag] = uhi, ulo, np.arange(n)
+        brow = np.repeat(np.arange(n), rowlen)
+        # entry (a, b) of block p (row v): bptr[v]·d² + a·rowlen[v]·d + (p − bptr[v])·d + b
+        a = np.arange(d)
+        base = bptr[brow] * (d * d - d) + np.arange(nb) * d
+        self.entry = base[:, None, None] + (rowlen[brow] * d)[:, None, None] * a[None, :, None] + a[None, None, :]
+        nnz = nb * d * d
+        self.indptr = (bptr[:-1, None] * d * d + (rowlen * d)[:, None] * a[None, :]).ravel()
+        self.indptr = np.append(self.indptr, nnz).astype(np.int32 if nnz < 2**31 else np.int64)
+        indices = np.empty(nnz, dtype=self.indptr.dtype)
+        indices[self.entry.ravel()] = np.broadcast_to(bcols[:, None, None] * d + a[None, None, :], (nb, d, d)).ravel()
+        self.indices = indices
+        self.nnz = nnz
+        ij = np.where(i < j, upper[pid], lower[pid])
+        ji = np.where(i < j, lower[pid], upper[pid])
+        self.contrib = self.entry[np.concatenate([diag[i], diag[j], ij, ji])].ravel()   # (4m·d²,)
+        fixed = np.zeros(n, dtype=bool)
+        fixed[anchors] = True
+        self.fixed_dofs = (anchors[:, None] * d + a).ravel()
+        self.fixed_entries = self.entry[fixed[brow] | fixed[bcols]].ravel()
+        self.fixed_diagonal = self.entry[diag[anchors]][:, a, a].ravel()
+
+    def matrix(self, blocks, rhs: np.ndarray, x_fixed: np.ndarray):
+        """The anchored system (A, b) from the edges' (ii, jj, ij, ji) blocks, the free rows' right-hand
+        side ``rhs`` (n·d, k) and the anchored dofs' values ``x_fixed`` (n_fixed·d, k)."""
+        data = np.bincount(self.contrib, np.concatenate(blocks).ravel(), minlength=self.nnz)
+        A = sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n * self.d,) * 2)
+        A.has_sorted_indices = True
+        x = np.zeros_like(rhs)
+        x[self.fixed_dofs] = x_fixed
+        b = rhs - A @ x
+        b[self.fixed_dofs] = x_fixed
+        data[self.fixed_entries] = 0.0
+        data[self.fixed_diagonal] = 1.0
+        return A, b
 
 
 def _spanning_tree(n: int, edges: np.ndarray, weight: np.ndarray, anchors: np.ndarray):
@@ -220,6 +303,13 @@ class _Reduced:
         x[self.free] = x_free
         x[self.fixed] = x_fixed
         return x
+
+
+def _positive_definite(W: np.ndarray) -> bool:
+    """Whether every symmetric block W_k (m,d,d) is positive definite (closed form for 2×2)."""
+    if W.shape[1] == 2:
+        return bool(np.all(W[:, 0, 0] > 0) and np.all(W[:, 0, 0] * W[:, 1, 1] - W[:, 0, 1] * W[:, 1, 0] > 0))
+    return bool(np.linalg.eigvalsh(W)[:, 0].min() > 0)
 
 
 def _block_expand(nodes: np.ndarray, d: int) -> np.ndarray:
@@ -403,12 +493,30 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
     w_rot, W_loc = _edge_weights(information, m, d, translation_weights)
     if np.any(~np.isfinite(w_rot)) or np.any(w_rot <= 0):
         raise ValueError("rotation weights must be positive and finite")
-    if np.any(~np.isfinite(W_loc)) or (m and np.linalg.eigvalsh(W_loc)[:, 0].min() <= 0):
+    if np.any(~np.isfinite(W_loc)) or (m and not _positive_definite(W_loc)):
         raise ValueError("translation information blocks must be positive definite and finite")
     i, j = edges[:, 0], edges[:, 1]
     anchors, R_fix, p_fix, ncomp = _anchors(n, edges, anchor, anchor_pose, d)
     cg = solver == "cg"
-    tree_eid, tree_order = _spanning_tree(n, edges, w_rot, anchors)
+    tree_cache = []
+
+    def spanning_tree():
+        if not tree_cache:  # only CG's tree preconditioner, its Schwarz rotation basis and LAGO need it
+            tree_cache.append(_spanning_tree(n, edges, w_rot, anchors))
+        return tree_cache[0]
+
+    # the direct path assembles both systems into one CSR pattern (no slicing, one symbolic analysis)
+    system = _BlockSystem(n, d, i, j, anchors) if not cg and rotation == "chordal" else None
+    factor = []
+
+    def direct(blocks, rhs, x_fixed):
+        A, b = system.matrix(blocks, rhs, x_fixed)
+        if factor:
+            factor[0].refactor(A)
+        else:
+            factor.append(SparseCholesky(A, "the chordal normal equations"))
+        return np.asarray(factor[0].solve(b)).reshape(rhs.shape)
+
     red_d, red_1 = _Reduced(n, d, anchors), _Reduced(n, 1, anchors)
     layout = None
     if cg and preconditioner == "schwarz" and red_1.free_nodes.size:
@@ -420,6 +528,7 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
         info["aggregates"] = layout.count
 
     def tree_of(red, S, W):
+        tree_eid, tree_order = spanning_tree()
         A_T, _ = _normal_equations(n, red.d, i[tree_eid], j[tree_eid], S[tree_eid], W[tree_eid])
         return _tree_solver(red, red.restrict(A_T)[0], tree_order)
 
@@ -459,7 +568,6 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
         # X_i e₀ ≈ (cos θ_i, −sin θ_i) alone is LAGO's relaxation on (cos θ, sin θ).
         S = np.swapaxes(R_meas, 1, 2)
         W = w_rot[:, None, None] * np.eye(d)
-        A, _ = _normal_equations(n, d, i, j, S, W)
         cols = 1 if d == 2 else d
         X_fix = np.swapaxes(R_fix, 1, 2).reshape(-1, d)[:, :cols]
 
@@ -476,13 +584,19 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
             Xt = full_blocks(np.column_stack([T(B[:, k]) for k in range(cols)]))
             return np.swapaxes(project_to_so(np.swapaxes(Xt, 1, 2)), 1, 2)
 
-        X, infos = solve(red_d, A, np.zeros((n * d, cols)), X_fix, S, W, rotation_basis)
+        if system is not None:  # W = w·I: SᵀW and WS are exact scalings
+            StW, WS = w_rot[:, None, None] * R_meas, w_rot[:, None, None] * S
+            X, infos = direct((StW @ S, W, -StW, -WS), np.zeros((n * d, cols)), X_fix), []
+        else:
+            A, _ = _normal_equations(n, d, i, j, S, W)
+            X, infos = solve(red_d, A, np.zeros((n * d, cols)), X_fix, S, W, rotation_basis)
         rotations = project_to_so(np.swapaxes(full_blocks(X), 1, 2))
     else:  # LAGO: θ_j − θ_i = δ_ij + 2πk_ij, k_ij from the angles composed along the spanning tree
         delta = np.arctan2(R_meas[:, 1, 0], R_meas[:, 0, 0])
         S = np.ones((m, 1, 1))
         W = w_rot[:, None, None]
         th_fix = np.arctan2(R_fix[:, 1, 0], R_fix[:, 0, 0])
+        tree_eid, tree_order = spanning_tree()
         A_T, b_T = _normal_equations(n, 1, i[tree_eid], j[tree_eid], S[tree_eid], W[tree_eid],
                                      delta[tree_eid, None])
         A_T_ff, A_T_fa = red_1.restrict(A_T)
@@ -503,9 +617,15 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
     Rw = rotations[i] @ R_meas
     W = Rw @ W_loc @ np.swapaxes(Rw, 1, 2)
     c = np.einsum("kab,kb->ka", rotations[i], t_meas)
-    S = np.broadcast_to(np.eye(d), (m, d, d))
-    A, b = _normal_equations(n, d, i, j, S, W, c)
-    P, infos = solve(red_d, A, b, p_fix.reshape(-1), S, W)
+    if system is not None:  # S = I: the blocks are ±W
+        Wc = np.einsum("kab,kb->ka", W, c)
+        b = np.stack([np.bincount(j, Wc[:, a], minlength=n) - np.bincount(i, Wc[:, a], minlength=n)
+                      for a in range(d)], -1)
+        P, infos = direct((W, W, -W, -W), b.reshape(n * d, 1), p_fix.reshape(-1, 1)), []
+    else:
+        S = np.broadcast_to(np.eye(d), (m, d, d))
+        A, b = _normal_equations(n, d, i, j, S, W, c)
+        P, infos = solve(red_d, A, b, p_fix.reshape(-1), S, W)
     positions = P.reshape(n, d)
     t3 = time.perf_counter()
     info["translation_iterations"] = [c_.iterations for c_ in infos]
