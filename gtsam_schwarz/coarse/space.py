@@ -10,19 +10,28 @@ import scipy.sparse as sp
 from ..dd.decomposition import Decomposition
 from ..dd.geometry import VertexGeometry
 from ..dd.interface import Interface
-from .extension import HarmonicExtension
+from .extension import CoarseBasis, HarmonicExtension
 from .modes import COMPONENT_SPACES, column_subdomains, interface_values
 
 
 @dataclass(frozen=True)
 class CoarseSpace:
-    Phi: sp.csr_matrix  # n × n_c coarse basis
+    basis: CoarseBasis  # n × n_c coarse basis Φ (rows stored interior first)
     A0: sp.csr_matrix  # Φᵀ A Φ
     column_component: np.ndarray  # interface component (coarse node) of each column
 
+    def __post_init__(self):
+        if sp.issparse(self.basis):  # a plain sparse Φ (global row order)
+            object.__setattr__(self, "basis", CoarseBasis(sp.csr_matrix(self.basis), np.arange(self.basis.shape[0])))
+
     @property
     def size(self) -> int:
-        return self.Phi.shape[1]
+        return self.basis.shape[1]
+
+    @property
+    def Phi(self) -> sp.csr_matrix:
+        """Φ as a CSR matrix in global row order (a copy; the preconditioner applies ``basis``)."""
+        return self.basis.tocsr()
 
 
 def gdsw_coarse_space(A: sp.spmatrix, decomposition: Decomposition, interface: Interface,
@@ -45,4 +54,4 @@ def gdsw_coarse_space(A: sp.spmatrix, decomposition: Decomposition, interface: I
         col_subdomains = column_subdomains(interface, offsets, rows, cols, len(column_component))
     extension = extension or HarmonicExtension(decomposition, interface)
     Phi, A0 = extension(A, rows, cols, vals, col_subdomains)
-    return CoarseSpace(Phi=Phi, A0=A0, column_component=column_component)
+    return CoarseSpace(basis=Phi, A0=A0, column_component=column_component)

@@ -25,8 +25,7 @@ class CoarseCorrection(SchwarzOperator):
 
     def __init__(self, coarse: CoarseSpace):
         self.coarse = coarse
-        self.n = coarse.Phi.shape[0]
-        self.PhiT = coarse.Phi.T.tocsr()
+        self.n = coarse.basis.shape[0]
         self.dropped = 0
         try:
             self._solve = factorize(coarse.A0, "the coarse matrix A_0")
@@ -56,7 +55,7 @@ class CoarseCorrection(SchwarzOperator):
     def apply(self, x):
         if self.coarse.size == 0:
             return np.zeros(self.n)
-        return self.coarse.Phi @ self._solve(self.PhiT @ x)
+        return self.coarse.basis.matvec(self._solve(self.coarse.basis.rmatvec(x)))
 
 
 class TwoLevelSchwarz(SumOperator):

@@ -125,7 +125,7 @@ def test_rank_deficient_coarse_basis_drops_dependent_vectors():
     cs = M.coarse_space
     # duplicate every coarse vector: Φ' = [Φ Φ] is rank deficient, A_0' singular
     Phi2 = sp.hstack([cs.Phi, cs.Phi]).tocsr()
-    bad = type(cs)(Phi=Phi2, A0=(Phi2.T @ system.H @ Phi2).tocsr(),
+    bad = type(cs)(basis=Phi2, A0=(Phi2.T @ system.H @ Phi2).tocsr(),
                    column_component=np.r_[cs.column_component, cs.column_component])
     C = CoarseCorrection(bad)
     assert C.dropped == cs.size
