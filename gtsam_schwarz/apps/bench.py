@@ -367,7 +367,8 @@ def _f(v, fmt: str, missing: str = "–") -> str:
 
 
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
-    return markdown_table(header, rows, left=("case", "solver", "status", "stack"))
+    return markdown_table(header, rows, left=("case", "solver", "status", "stack", "linear solver", "auto chose",
+                                              "auto picked the faster"))
 
 
 def _same(r: dict) -> str:

@@ -223,5 +223,5 @@ def test_default_solvers_leave_out_g2o_when_it_is_not_importable():
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=60)
     assert proc.returncode == 0, proc.stderr
     default, known = (json.loads(l.replace("'", '"')) for l in proc.stdout.splitlines())
-    assert default == ["ours", "gtsam-lm", "gtsam-lm-pcg", "gtsam-lm-subgraph"]
+    assert default == ["ours", "ours-direct", "ours-schwarz", "gtsam-lm", "gtsam-lm-pcg", "gtsam-lm-subgraph"]
     assert known == default + ["g2o-gn", "g2o-lm"]  # still accepted by --solvers: a "not installed" row
