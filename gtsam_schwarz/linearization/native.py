@@ -44,6 +44,28 @@ class NativeState:
         self._cache = {}
 
 
+def _insert_all(values: gtsam.Values, keys: list, poses, kind: str) -> None:
+    """``values.insert(k, pose)`` for all pairs, naming the overload by keyword: pybind11 then skips the
+    overloads before it (vectors, matrices, …) without trying to convert, ~3× cheaper per call."""
+    insert = values.insert
+    it = zip(keys, poses)
+    for k, p in it:  # the first one finds out whether this gtsam names the arguments (j, pose2/pose3)
+        try:
+            insert(j=k, **{kind: p})
+        except TypeError:
+            insert(k, p)
+            for k2, p2 in it:
+                insert(k2, p2)
+            return
+        break
+    if kind == "pose2":
+        for k, p in it:
+            insert(j=k, pose2=p)
+    else:
+        for k, p in it:
+            insert(j=k, pose3=p)
+
+
 # ---------------------------------------------------------------------------------------------
 # Noise models and m-estimators from gtsam
 # ---------------------------------------------------------------------------------------------
@@ -571,8 +593,13 @@ class NativeLinearizer:
 
     @staticmethod
     def _rows(values, keys, all_of, extract) -> np.ndarray:
-        table = extract(values)
-        have = np.asarray(all_of(values).keys(), dtype=np.uint64)
+        table = extract(values)   # rows in key order, like values.keys()
+        if len(table) == values.size():   # all values of this kind: no filtered copy of them needed
+            have = np.asarray(values.keys(), dtype=np.uint64)
+            if np.array_equal(have, keys):
+                return table
+        else:
+            have = np.asarray(all_of(values).keys(), dtype=np.uint64)
         order = np.argsort(have, kind="stable")
         pos = np.searchsorted(have, keys, sorter=order)
         if len(keys) and (np.any(pos >= len(have)) or np.any(have[order[np.minimum(pos, len(have) - 1)]] != keys)):
@@ -589,14 +616,13 @@ class NativeLinearizer:
         if self._k2 is not None:
             keys = self._k2.keys if idx2 is None else self._k2.keys[idx2]
             P = state.pose2 if idx2 is None else state.pose2[:, idx2]
-            for k, x, y, th in zip(keys.tolist(), P[0].tolist(), P[1].tolist(), nk.pose2_theta(P).tolist()):
-                out.insert(k, gtsam.Pose2(x, y, th))
+            _insert_all(out, keys.tolist(), map(gtsam.Pose2, P[0].tolist(), P[1].tolist(), nk.pose2_theta(P).tolist()),
+                        "pose2")
         if self._k3 is not None:
             keys = self._k3.keys if idx3 is None else self._k3.keys[idx3]
             R = state.R3 if idx3 is None else state.R3[idx3]
             t = state.t3 if idx3 is None else state.t3[idx3]
-            for k, Rk, tk in zip(keys.tolist(), R, t):
-                out.insert(k, gtsam.Pose3(gtsam.Rot3(Rk), tk))
+            _insert_all(out, keys.tolist(), map(gtsam.Pose3, map(gtsam.Rot3, R), t), "pose3")
 
     def retract(self, state: NativeState, x: np.ndarray) -> NativeState:
         """state ⊕ x: poses x·Exp(δ) in numpy, other variables by ``Values.retract``."""
