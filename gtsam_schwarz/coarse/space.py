@@ -43,6 +43,18 @@ def gdsw_coarse_space(A: sp.spmatrix, decomposition: Decomposition, interface: I
     interface from ``find_interface(..., group="two-hop")``), with or without rotations.
 
     Pass the same ``extension`` for successive matrices to reuse its symbolic work."""
+    rows, cols, vals, column_component, col_subdomains = coarse_columns(
+        decomposition, interface, kind, geometry, rotation, translation_mask)
+    extension = extension or HarmonicExtension(decomposition, interface)
+    Phi, A0 = extension(A, rows, cols, vals, col_subdomains)
+    return CoarseSpace(basis=Phi, A0=A0, column_component=column_component)
+
+
+def coarse_columns(decomposition: Decomposition, interface: Interface, kind: str = "gdsw",
+                   geometry: VertexGeometry | None = None, rotation: bool = True,
+                   translation_mask: np.ndarray | None = None):
+    """Φ_Γ as triplets (global dof, column, value), the component of each column and the
+    (columns × subdomains) incidence of the subdomains each column's extension reaches."""
     offsets = decomposition.structure.offsets
     rows, cols, vals, column_component = interface_values(
         interface, offsets, kind, geometry, rotation, translation_mask)
@@ -52,6 +64,4 @@ def gdsw_coarse_space(A: sp.spmatrix, decomposition: Decomposition, interface: I
         col_subdomains = sp.csr_matrix(interface.component_subdomains()[column_component])
     else:
         col_subdomains = column_subdomains(interface, offsets, rows, cols, len(column_component))
-    extension = extension or HarmonicExtension(decomposition, interface)
-    Phi, A0 = extension(A, rows, cols, vals, col_subdomains)
-    return CoarseSpace(basis=Phi, A0=A0, column_component=column_component)
+    return rows, cols, vals, column_component, col_subdomains

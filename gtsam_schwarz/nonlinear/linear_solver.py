@@ -20,6 +20,7 @@ from ..krylov import pcg
 from ..schwarz import create_preconditioner
 from ..dd.index_sets import IndexSets
 from ..solvers import SparseCholesky, SparsityPattern, block_diagonal, cholesky_cost, pattern_cholesky_cost, vertex_pattern
+from ..solvers.memory import FACTOR_BYTES, MATRIX_BYTES, available_memory, gib
 from .params import LinearSolverParams
 from .records import SolveResult
 
@@ -112,7 +113,8 @@ class PreconditionedCG(LinearSolver):
         self._rebuilt = not (lag and M is not None)
         if M is None or (not lag and not p.reuse_symbolic):
             M = create_preconditioner(p.preconditioner, H.shape[0], self._decompose(H), self.translation_mask,
-                                      interface_grouping=p.interface_grouping, coarse_modes=p.coarse_modes)
+                                      interface_grouping=p.interface_grouping, coarse_modes=p.coarse_modes,
+                                      memory_limit=p.memory_limit)
             M.setup(H)
             self.operator = M
         elif lag:
@@ -209,7 +211,9 @@ class AutoSolver(LinearSolver):
         params = LinearSolverParams(**{**vars(self.params), "preconditioner": self.schwarz_name})
         cg = PreconditionedCG(params, self.offsets, self.translation_mask)
         floor = self.model.schwarz_floor(H.nnz)
-        if t_direct <= floor:  # Schwarz cannot win: not even its SpMVs fit in the direct time
+        direct_bytes = FACTOR_BYTES * direct.nnz_L + MATRIX_BYTES * H.nnz
+        available = available_memory(self.params.memory_limit)
+        if t_direct <= floor and direct_bytes <= available:  # Schwarz cannot win: not even its SpMVs fit in the direct time
             self.choice, self.chosen = "direct", DirectSolver()
             self.reason = (f"nnz(L) {direct.nnz_L:.3g} ({direct.fill:.1f}x nnz(H)), {direct.flops:.3g} flops: "
                            f"direct {t_direct:.3g} s per solve (predicted) < the {floor:.3g} s of "
@@ -224,7 +228,10 @@ class AutoSolver(LinearSolver):
         t_schwarz = self.model.schwarz(local, H.nnz)
         facts = (f"nnz(L) {direct.nnz_L:.3g} ({direct.fill:.1f}x nnz(H)), {direct.flops:.3g} flops: "
                  f"direct {t_direct:.3g} s vs {self.schwarz_name} {t_schwarz:.3g} s per solve (predicted)")
-        if t_direct <= t_schwarz:
+        if direct_bytes > available:  # the factor would not fit: Schwarz (which checks its own peak)
+            self.choice, self.chosen = self.schwarz_name, cg
+            facts += f"; direct's factor needs ~{gib(direct_bytes)}, {gib(available)} available"
+        elif t_direct <= t_schwarz:
             self.choice, self.chosen = "direct", DirectSolver()
         else:
             self.choice, self.chosen = self.schwarz_name, cg

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field, fields
 
 from ..dd.partition import PARTITIONS
 from ..schwarz.registry import preconditioner_names
+from ..solvers.memory import parse_bytes
 
 METHODS = ("gn", "lm")
 BACKENDS = ("serial", "petsc")  # where the linear solves run (petsc: PETSc over MPI, docs/distributed.md)
@@ -44,7 +45,7 @@ class LinearSolverParams:
     partition: str = "auto"  # auto (segments or metis, the smaller interface) | segments | metis
     overlap: int = 1
     grow_along: str = "odometry"  # odometry | all
-    interface_grouping: str = "components"  # components | vertices
+    interface_grouping: str = "components"  # components | vertices | two-hop (rgdsw-linear / gdsw-linear always use two-hop)
     coarse_modes: str = "rigid"  # rigid (rigid-body modes about component centroids) | unit
     cg_tol: float = 1e-8
     cg_max_iterations: int | None = None  # None: 10 × the system dimension
@@ -55,6 +56,7 @@ class LinearSolverParams:
     lagged_preconditioner: bool = True  # keep M (all its numbers) while the poses have hardly moved
     lag_distance: float = 0.1  # lagged: rebuild M once the steps since its build sum to this (max-norm)
     lag_growth: float = 1.5  # lagged: CG cap = this × the CG count right after the build; beyond it, rebuild
+    memory_limit: float | str | None = None  # bytes the linear solver may use ("2G"); None: $GTSAM_SCHWARZ_MEMORY_LIMIT or what is available
 
     def __post_init__(self):
         _choice("preconditioner", self.preconditioner, linear_solver_names())
@@ -62,7 +64,7 @@ class LinearSolverParams:
         _choice("partition", self.partition, PARTITIONS)
         _choice("forcing", self.forcing, FORCING)
         _choice("grow_along", self.grow_along, ("odometry", "all"))
-        _choice("interface_grouping", self.interface_grouping, ("components", "vertices"))
+        _choice("interface_grouping", self.interface_grouping, ("components", "vertices", "two-hop"))
         _choice("coarse_modes", self.coarse_modes, ("rigid", "unit"))
         if self.subdomains is not None and self.subdomains < 1:
             raise ValueError(f"subdomains must be >= 1, got {self.subdomains}")
@@ -72,6 +74,8 @@ class LinearSolverParams:
             raise ValueError(f"cg_tol must be > 0, got {self.cg_tol}")
         if not self.lag_distance >= 0:
             raise ValueError(f"lag_distance must be >= 0, got {self.lag_distance}")
+        if self.memory_limit is not None and not parse_bytes(self.memory_limit) > 0:
+            raise ValueError(f"memory_limit must be > 0, got {self.memory_limit!r}")
         if not self.lag_growth >= 1:
             raise ValueError(f"lag_growth must be >= 1, got {self.lag_growth}")
 

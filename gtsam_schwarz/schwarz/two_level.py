@@ -10,6 +10,7 @@ from ..dd.geometry import VertexGeometry
 from ..dd.interface import find_interface
 from ..solvers import SingularLocalMatrixError, factorize
 from .base import SchwarzOperator, SumOperator
+from .memory import fit_memory
 from .one_level import AdditiveSchwarz, _need
 
 
@@ -68,8 +69,10 @@ class TwoLevelSchwarz(SumOperator):
 
     def __init__(self, decomposition: Decomposition, kind: str = "gdsw", rotation: bool = True,
                  translation_mask: np.ndarray | None = None, interface_grouping: str = "components",
-                 coarse_modes: str = "rigid"):
+                 coarse_modes: str = "rigid", memory_limit=None):
         self.decomposition = decomposition
+        self.memory_limit = memory_limit  # bytes (None: $GTSAM_SCHWARZ_MEMORY_LIMIT or what is available)
+        self.memory = None  # the MemoryEstimate of the first update
         self.kind, self.rotation, self.translation_mask = kind, rotation, translation_mask
         self.interface_grouping = interface_grouping
         self.rigid = coarse_modes == "rigid"
@@ -80,9 +83,9 @@ class TwoLevelSchwarz(SumOperator):
 
     @classmethod
     def create(cls, n, decomposition=None, translation_mask=None, kind="gdsw", rotation=True,
-               interface_grouping="components", coarse_modes="rigid", **options):
+               interface_grouping="components", coarse_modes="rigid", memory_limit=None, **options):
         mask = translation_mask if translation_mask is not None else np.ones(n, dtype=bool)
-        return cls(_need(decomposition, kind), kind, rotation, mask, interface_grouping, coarse_modes)
+        return cls(_need(decomposition, kind), kind, rotation, mask, interface_grouping, coarse_modes, memory_limit)
 
     @property
     def uses_geometry(self) -> bool:
@@ -97,6 +100,7 @@ class TwoLevelSchwarz(SumOperator):
         """Interface components and the harmonic-extension plan (symbolic, once per graph)."""
         self.interface = find_interface(self.decomposition, self.interface_grouping)
         self.extension = HarmonicExtension(self.decomposition, self.interface)
+        self.memory = None
         return self
 
     def update(self, A, geometry: VertexGeometry | None = None):
@@ -104,6 +108,9 @@ class TwoLevelSchwarz(SumOperator):
         and symbolic factorizations are kept; numbers, Φ and A_0 are recomputed."""
         if self.extension is None:
             self.setup(A)
+        if self.memory is None:  # before the heavy work: estimate the peak, adapt or stop
+            self.memory = fit_memory(self, A, self.memory_limit, self.kind)
+            self.extension.block_columns = self.memory.block_columns
         self.one_level.update(A)
         self.coarse_space = gdsw_coarse_space(A, self.decomposition, self.interface, self.kind, geometry,
                                               self.rotation, self.translation_mask, self.extension)

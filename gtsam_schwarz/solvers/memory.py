@@ -1,0 +1,69 @@
+"""Memory the linear solvers may use, and the error when a configuration cannot fit.
+
+The limit is ``GTSAM_SCHWARZ_MEMORY_LIMIT`` (bytes, or with a suffix: ``512M``, ``2.5G``) when set, else
+what the machine has available now (``MemAvailable``, and the cgroup's limit minus its usage when
+one is set). Solvers estimate their peak from the symbolic analysis before the heavy work and either
+adapt (fewer columns at a time) or raise :class:`InsufficientMemoryError` with one line naming
+what to change.
+"""
+
+from __future__ import annotations
+
+import os
+
+GIB = float(2**30)
+ENV = "GTSAM_SCHWARZ_MEMORY_LIMIT"
+FACTOR_BYTES = 8 * 1.5 + 1.0  # per predicted entry of a CHOLMOD supernodal factor (padding, row indices)
+MATRIX_BYTES = 8 + 4 + 8  # per stored entry of a gathered submatrix: value, column index, source position
+
+
+class InsufficientMemoryError(MemoryError):
+    """A solver's estimated peak exceeds the memory available; the message (one line) says what
+    needs how much and what to change."""
+
+
+def parse_bytes(text: str | float | int) -> float:
+    """``"512M"``, ``"2.5G"``, ``"1e9"`` or a number → bytes."""
+    if isinstance(text, (int, float)):
+        return float(text)
+    s = str(text).strip().upper().removesuffix("B")
+    scale = {"K": 2.0**10, "M": 2.0**20, "G": 2.0**30, "T": 2.0**40}.get(s[-1:], 1.0)
+    try:
+        return float(s[:-1] if scale != 1.0 else s) * scale
+    except ValueError:
+        raise ValueError(f"{ENV}: cannot read {text!r} as a size (e.g. 512M, 2.5G)") from None
+
+
+def _read_int(path: str) -> float | None:
+    try:
+        with open(path) as f:
+            text = f.read().strip()
+        return None if text == "max" else float(text)
+    except (OSError, ValueError):
+        return None
+
+
+def available_memory(limit: float | str | None = None) -> float:
+    """Bytes the solver may still allocate: ``limit`` if given, else $GTSAM_SCHWARZ_MEMORY_LIMIT,
+    else MemAvailable (capped by the cgroup's memory.max − memory.current)."""
+    if limit is not None:
+        return parse_bytes(limit)
+    if os.environ.get(ENV):
+        return parse_bytes(os.environ[ENV])
+    avail = float("inf")
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    avail = float(line.split()[1]) * 1024
+                    break
+    except OSError:
+        pass
+    cap, used = _read_int("/sys/fs/cgroup/memory.max"), _read_int("/sys/fs/cgroup/memory.current")
+    if cap is not None and used is not None:
+        avail = min(avail, cap - used)
+    return avail
+
+
+def gib(nbytes: float) -> str:
+    return f"{nbytes / GIB:.2f} GiB"
