@@ -138,8 +138,16 @@ def upper_sqrt_information(R: np.ndarray) -> np.ndarray:
 
 
 def sqrt_of_information(info: np.ndarray) -> np.ndarray:
-    """(m, d, d) information Ω → upper-triangular R with RᵀR = Ω (Cholesky, like GTSAM's Gaussian::Information)."""
+    """(m, d, d) information Ω → upper-triangular R with RᵀR = Ω (Cholesky, like GTSAM's Gaussian::Information);
+    runs of equal Ω (one noise model for many factors) are factorized once."""
     info = np.asarray(info, dtype=np.float64)
+    m = len(info)
+    if m > 1:
+        start = np.ones(m, dtype=bool)
+        np.any(info[1:] != info[:-1], axis=(1, 2), out=start[1:])
+        if 2 * np.count_nonzero(start) < m:
+            first = np.flatnonzero(start)
+            return np.repeat(sqrt_of_information(info[first]), np.diff(np.append(first, m)), axis=0)
     try:
         return np.ascontiguousarray(np.linalg.cholesky(info).transpose(0, 2, 1))
     except np.linalg.LinAlgError:  # semi-definite: symmetric square root, then QR
@@ -349,8 +357,14 @@ class NativeLinearizer:
         if len(skeys) > 1 and np.any(skeys[1:] == skeys[:-1]):
             raise ValueError("pose keys are not unique")
 
+        contiguous = len(skeys) > 0 and int(skeys[0]) == 0 and int(skeys[-1]) == len(skeys) - 1  # ids 0..n−1
+
         def index(ids):
             ids = np.asarray(ids, dtype=np.uint64).ravel()
+            if contiguous:   # unique sorted keys 0..n−1: an id is its own index
+                if len(ids) and int(ids.max()) >= len(skeys):
+                    raise KeyError("an edge or prior refers to an unknown pose id")
+                return ids.astype(np.int64)
             pos = np.searchsorted(skeys, ids)
             if len(ids) and (np.any(pos >= len(skeys)) or np.any(skeys[np.minimum(pos, len(skeys) - 1)] != ids)):
                 raise KeyError("an edge or prior refers to an unknown pose id")
@@ -571,7 +585,7 @@ class NativeLinearizer:
         self._zero = size          # S[size] = 0: entries only GTSAM-linearized factors fill
         self._src_size = size + 1
         self._src = P.source_index(puts, fill=size)
-        P.perm = None   # only the plan needs it (8 bytes per entry of H)
+        P.drop_plan_index()   # only the plan needs it
         self._other_pos = None  # (indptr, indices, positions) of the last H of the other factors
 
     # -----------------------------------------------------------------------------------------

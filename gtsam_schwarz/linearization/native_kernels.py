@@ -867,9 +867,10 @@ class BlockPattern:
     """CSR pattern (sorted indices) holding every entry of every block (u, v) of coupled variables.
 
     Variables v own dofs offsets[v]:offsets[v+1]; blocks are the diagonal ones plus both orientations of
-    every coupled pair, numbered k in row-major order. If all variables have d dofs the CSR arrays come
-    from scipy's BSR→CSR conversion of a block matrix holding k·d² + a·d + b, which also gives every CSR
-    position's block entry (``perm``); otherwise block entry (a, b) of block k sits at
+    every coupled pair, numbered k in row-major order (row v: its lower pairs, its diagonal, its upper
+    pairs, from one sort of the distinct pairs). If all variables have d dofs the CSR arrays come from
+    scipy's BSR→CSR conversion of a block matrix holding k·d² + a·d + b, which also gives every CSR
+    position's block entry (``_perm``); otherwise block entry (a, b) of block k sits at
     indptr[offsets[row_k] + a] + colstart_k + b."""
 
     def __init__(self, dims: np.ndarray, rows: np.ndarray, cols: np.ndarray):
@@ -883,31 +884,43 @@ class BlockPattern:
         self.n = n
         rows = np.asarray(rows, dtype=np.int64)
         cols = np.asarray(cols, dtype=np.int64)
-        diag = np.arange(nv, dtype=np.int64)
-        keys = sorted_unique(np.concatenate([rows * nv + cols, cols * nv + rows, diag * (nv + 1)]))
-        self.block_keys = keys
-        nb = len(keys)
-        br, bc = keys // nv, keys % nv
+        lo, hi = np.minimum(rows, cols), np.maximum(rows, cols)
+        off = lo != hi
+        pairs = sorted_unique(lo[off] * nv + hi[off])
+        ulo, uhi = pairs // nv, pairs % nv
+        npairs = len(pairs)
+        nup, nlow = np.bincount(ulo, minlength=nv), np.bincount(uhi, minlength=nv)
+        rowlen = nup + nlow + 1
+        bptr = np.zeros(nv + 1, dtype=np.int64)
+        np.cumsum(rowlen, out=bptr[1:])
+        nb = int(bptr[-1])
+        bc = np.empty(nb, dtype=np.int64)
+        bc[bptr[ulo] + nlow[ulo] + 1 + np.arange(npairs) - (np.cumsum(nup) - nup)[ulo]] = uhi
+        by_hi = np.argsort(uhi, kind="stable")   # keeps lo increasing within each hi
+        bc[bptr[uhi[by_hi]] + np.arange(npairs) - (np.cumsum(nlow) - nlow)[uhi[by_hi]]] = ulo[by_hi]
+        self._diag_blocks = bptr[:-1] + nlow
+        bc[self._diag_blocks] = np.arange(nv)
+        br = np.repeat(np.arange(nv), rowlen)
+        self.block_keys = br * nv + bc
         self.block_rows, self.block_cols = br, bc
-        bptr = np.searchsorted(br, np.arange(nv + 1))
         dvals = sorted_unique(dims).tolist()
         self.uniform = len(dvals) == 1
-        self.perm = None
-        if self.uniform:
+        self._perm = None
+        if self.uniform:   # scipy's BSR→CSR lays out the entries; int block numbers give each one's origin
             d = dvals[0]
             self.d = d
-            blocks = np.arange(1, nb * d * d + 1, dtype=np.float64).reshape(nb, d, d)   # 1-based: no zeros
-            C = sp.bsr_matrix((blocks, bc, bptr), shape=(n, n), blocksize=(d, d)).tocsr()
-            del blocks
-            self.nnz = int(C.indptr[-1])
+            self.nnz = nb * d * d
             self.index_dtype = np.int32 if max(n, self.nnz) < 2**31 - 1 else np.int64
-            if self.nnz != nb * d * d or not C.has_sorted_indices:
+            blocks = np.arange(self.nnz, dtype=np.int64).reshape(nb, d, d)
+            C = sp.bsr_matrix((blocks, bc.astype(self.index_dtype), bptr.astype(self.index_dtype)), shape=(n, n),
+                              blocksize=(d, d)).tocsr()
+            del blocks
+            if int(C.indptr[-1]) != self.nnz:
                 raise RuntimeError("unexpected BSR→CSR conversion")
-            C.data -= 1.0
-            self.perm = C.data.astype(np.int64)   # CSR position → k·d² + a·d + b (used once, by the plan)
+            self._perm = C.data   # CSR position → k·d² + a·d + b (used once, by the plan)
             self._indptr64 = C.indptr.astype(np.int64)
-            self.indptr = C.indptr.astype(self.index_dtype)
-            self.indices = C.indices.astype(self.index_dtype)
+            self.indptr = C.indptr.astype(self.index_dtype, copy=False)
+            self.indices = C.indices.astype(self.index_dtype, copy=False)
             del C
         else:
             cd = dims[bc]
@@ -930,6 +943,10 @@ class BlockPattern:
         for arr in (self.indptr, self.indices):
             arr.flags.writeable = False
 
+    def drop_plan_index(self) -> None:
+        """Free what only :meth:`source_index` needs (8 bytes per entry of H)."""
+        self._perm = None
+
     def _positions(self, k: np.ndarray, dr: int, dc: int) -> np.ndarray:
         row0 = self.offsets[self.block_rows[k]]
         return (self._indptr64[row0[:, None] + np.arange(dr)][:, :, None]
@@ -937,7 +954,11 @@ class BlockPattern:
 
     def block_index(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Block numbers of blocks (rows, cols) (they must be in the pattern)."""
-        q = np.asarray(rows, dtype=np.int64) * self.nv + np.asarray(cols, dtype=np.int64)
+        rows = np.asarray(rows, dtype=np.int64)
+        cols = np.asarray(cols, dtype=np.int64)
+        if rows is cols or np.array_equal(rows, cols):   # diagonal blocks: no search
+            return self._diag_blocks[rows]
+        q = rows * self.nv + cols
         k = np.searchsorted(self.block_keys, q)
         if len(q) and (np.any(k >= len(self.block_keys)) or np.any(self.block_keys[np.minimum(k, len(self.block_keys) - 1)] != q)):
             raise KeyError("block not in pattern")
@@ -951,7 +972,7 @@ class BlockPattern:
             src = np.full((len(self.block_keys), d, d), fill, dtype=np.int64)
             for rows, cols, val in assignments:
                 src[self.block_index(rows, cols)] = val
-            return src.reshape(-1)[self.perm]
+            return np.take(src.reshape(-1), self._perm)
         src = np.full(self.nnz, fill, dtype=np.int64)
         for rows, cols, val in assignments:
             k = self.block_index(rows, cols)
