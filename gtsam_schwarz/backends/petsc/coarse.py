@@ -19,6 +19,7 @@ from ...dd.decomposition import Decomposition
 from ...dd.geometry import VertexGeometry
 from ...dd.interface import Interface
 from ...solvers import SparseCholesky, SparsityPattern, factorize
+from .layout import sorted_unique
 
 
 class _Rows:
@@ -42,7 +43,7 @@ class _Rows:
         self.src_II = pos[inner]
         self.indices_II = local[cols[inner]]
         self.indptr_II = np.r_[0, np.cumsum(np.bincount(row[inner], minlength=len(I)))]
-        self.J = np.unique(cols[on_gamma])
+        self.J = sorted_unique(cols[on_gamma])
         self.src_IJ = pos[on_gamma]
         self.indices_IJ = np.searchsorted(self.J, cols[on_gamma])
         self.indptr_IJ = np.r_[0, np.cumsum(np.bincount(row[on_gamma], minlength=len(I)))]
@@ -109,7 +110,7 @@ class LocalCoarseBasis:
         P = sp.csr_matrix(C.T)  # subdomain × column
         P.sort_indices()
         counts = np.diff(P.indptr)
-        K = int(counts[np.unique(self.sub)].max()) if len(self.sub) else 0
+        K = int(counts[sorted_unique(self.sub)].max()) if len(self.sub) else 0
         pair_sub = np.repeat(np.arange(P.shape[0]), counts)
         nc = C.shape[0]
         plan = {"K": K, "nc": nc, "pair_key": pair_sub * np.int64(max(nc, 1)) + P.indices,

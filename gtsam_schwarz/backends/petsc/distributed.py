@@ -32,6 +32,7 @@ from ...linearization.native import NativeLinearizer, NativeState
 from ...nonlinear.gauge import FREE_TOL
 from ...nonlinear.optimizer import SchwarzOptimizer
 from ...nonlinear.records import IterationRecord
+from .layout import sorted_unique
 from .solver import PetscSchwarzSolver, petsc
 
 
@@ -92,9 +93,9 @@ class RankLinearizer:
         self.n_factors = len(own_b) + len(own_p)
         parts = [B.i[own_b], B.j[own_b]] if B is not None else []
         parts += [P.j[own_p]] if P is not None else []
-        touched = np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
+        touched = sorted_unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
         self.owned = np.flatnonzero(vrank == rank)  # the poses this rank reports (geometry, values)
-        self.hold = np.union1d(touched, self.owned)  # the poses this rank keeps and retracts
+        self.hold = sorted_unique(np.concatenate([touched, self.owned]))  # the poses this rank keeps and retracts
         self.sel = None if len(touched) == len(self.hold) else np.searchsorted(self.hold, touched)
         self.owned_at = np.searchsorted(self.hold, self.owned)
         self.local = None
@@ -178,8 +179,8 @@ class RankLinearizer:
         dest = np.searchsorted(lay.ranges, rows, side="right") - 1
         order = np.argsort(dest, kind="stable")
         bounds = np.searchsorted(dest[order], np.arange(lay.ranks + 1))
-        send = [np.unique(key[order[bounds[r]:bounds[r + 1]]]) for r in range(lay.ranks)]
-        mine = np.unique(np.concatenate(mpi.alltoall(send)))
+        send = [sorted_unique(key[order[bounds[r]:bounds[r + 1]]]) for r in range(lay.ranks)]
+        mine = sorted_unique(np.concatenate(mpi.alltoall(send)))
         r = mine // n - lo
         indptr = np.zeros(hi - lo + 1, dtype=np.int64)
         np.cumsum(np.bincount(r, minlength=hi - lo), out=indptr[1:])
@@ -238,7 +239,10 @@ class DistributedOptimizer(SchwarzOptimizer):
 
     def __init__(self, graph, initial, params=None, comm=None, local_solver: str = "auto",
                  coarse_matrix: str = "harmonic", options: dict | None = None, linearizer=None):
+        t0 = time.perf_counter()
         super().__init__(graph, initial, params, linearizer=linearizer)
+        self.init_seconds = time.perf_counter() - t0  # the whole graph's linearizer, initial error, chordal start
+        self.setup_seconds = 0.0
         PETSc = petsc()
         self.comm = comm if comm is not None else PETSc.COMM_WORLD
         self.mpi = self.comm.tompi4py()

@@ -202,6 +202,7 @@ def solve(args, comm) -> dict:
                 "poses_held": int(len(opt.part.hold)) if getattr(opt, "part", None) is not None else None}
         if getattr(opt, "part", None) is not None:
             work["seconds"].update({f"linearize_{k}": float(v) for k, v in opt.part.seconds.items()})
+            work["seconds"].update(optimizer_init=float(opt.init_seconds), distributed_setup=float(opt.setup_seconds))
         per_rank = comm.gather(work, root=0)
     phase_max = {k: float(comm.allreduce(v, op=_max())) for k, v in split.items()}
     report = {

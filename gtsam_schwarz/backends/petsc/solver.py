@@ -1,10 +1,12 @@
 """The nonlinear loop's linear solve on PETSc over MPI: KSPCG with the same two-level Schwarz
 preconditioner as the serial solver.
 
-Every rank holds the same H (each runs the same serial linearization) but assembles only its own
-rows into an MPIAIJ matrix; rows are owned by subdomain (``layout.rank_layout``: rank r owns the
-dofs of the nonoverlapping vertex sets of its subdomains, renumbered to be contiguous). The
-preconditioner is
+Rows are owned by subdomain (``layout.rank_layout``: rank r owns the dofs of the nonoverlapping
+vertex sets of its subdomains, renumbered to be contiguous). Two entries: ``solve(H, …)`` takes the
+same whole H on every rank (each ran the serial linearization), copies its own rows into an MPIAIJ
+matrix and returns the full step on every rank; ``solve_distributed(H, damping, b, …)`` takes H and b
+already assembled in PETSc by the ranks (``distributed.DistributedOptimizer``) and leaves the step
+distributed. The preconditioner is
 
     M⁻¹ = Σ_i R_iᵀ A_i⁻¹ R_i + Φ (ΦᵀAΦ)⁻¹ Φᵀ
 
@@ -14,7 +16,7 @@ fine-level smoother is PCASM (basic, i.e. the symmetric additive Schwarz sum, on
 subdomains with overlap 0 on top; local Cholesky by CHOLMOD when this PETSc has it, else PETSc's
 own with nested dissection) applied once (preonly), and whose coarse solve is redundant LU.
 CG stops on the unpreconditioned residual ‖r‖ ≤ tol·‖b‖, as ``krylov.pcg``; λ estimates come
-from KSP's Lanczos matrix. The solution is gathered onto every rank (``VecScatter.toAll``), so
+from KSP's Lanczos matrix. ``solve`` gathers the solution onto every rank (``VecScatter.toAll``), so
 the nonlinear loop takes identical decisions on all ranks.
 
 The lagging policy is :class:`~gtsam_schwarz.nonlinear.linear_solver.PreconditionedCG`'s (same
