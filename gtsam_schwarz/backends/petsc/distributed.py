@@ -258,8 +258,9 @@ class DistributedOptimizer(SchwarzOptimizer):
             t0 = time.perf_counter()
             pattern = full.pattern.matrix(np.ones(full.pattern.nnz))
             layout = self.linear_solver.set_layout(pattern)
-            self._components = connected_components(GraphStructure.from_matrix(pattern, full.offsets).adjacency(),
-                                                    directed=False)
+            dec = self.linear_solver.decomposition
+            structure = dec.structure if dec is not None else GraphStructure.from_matrix(pattern, full.offsets)
+            self._components = connected_components(structure.adjacency(), directed=False)
             self.part = RankLinearizer(full, layout, self.rank, self.comm)
             self._state = self.part.state(self._state)
             self._error = self._sum(self.part.error(self._state))[0]
@@ -322,15 +323,17 @@ class DistributedOptimizer(SchwarzOptimizer):
         lo, hi = lay.rows(self.rank)
         vertex = np.repeat(np.arange(nv), np.diff(offsets))
         modes = rigid_modes(geometry, np.arange(nv), np.zeros((nv, d)), rotation=False)  # (nv, dim, d)
-        local = np.arange(len(vertex)) - offsets[vertex]
-        Z = np.zeros((len(vertex), n_comp * d))  # dense over components: few of them
-        Z[np.arange(len(vertex))[:, None], comp[vertex][:, None] * d + np.arange(d)] = modes[vertex, local]
+        n = len(vertex)
+        local = np.arange(n) - offsets[vertex]
+        cols = comp[vertex][:, None] * d + np.arange(d)
+        Z = sp.csr_matrix((modes[vertex, local].ravel(), (np.repeat(np.arange(n), d), cols.ravel())),
+                          shape=(n, n_comp * d))[lay.order]  # rows in the layout's numbering
         indptr, indices, data = H.getValuesCSR()
         Hl = sp.csr_matrix((data, indices, indptr), shape=(hi - lo, lay.n))
-        Zp = Z[lay.order]
+        Zo = Z[lo:hi]
         diag = H.getDiagonal().getArray(readonly=True)
-        zHz = np.einsum("ij,ij->j", Zp[lo:hi], Hl @ Zp)
-        zDz = np.einsum("ij,ij->j", Zp[lo:hi] ** 2, diag[:, None])
+        zHz = np.asarray(Zo.multiply(Hl @ Z).sum(axis=0)).ravel()
+        zDz = np.asarray(Zo.multiply(Zo).multiply(diag[:, None]).sum(axis=0)).ravel()
         zHz, zDz = np.split(self._sum(*zHz, *zDz), 2)
         ratio = (zHz / np.where(zDz > 0, zDz, 1.0)).reshape(n_comp, d).max(axis=1)
         free = np.flatnonzero(ratio < FREE_TOL)
