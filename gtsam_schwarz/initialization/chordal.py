@@ -4,6 +4,7 @@ p = argmin Σ ‖p_j − p_i − R_i t_ij‖²_W (g2o/GTSAM: x_j = x_i ∘ z_ij)
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import dataclass, field
 
@@ -447,14 +448,28 @@ def chordal_initialization(n: int, edges, R_meas, t_meas, information=None, anch
     """Anchored R = proj_SO(d)(argmin_X Σ w_ij‖X_j − X_i R_ij‖_F²), then
     p = argmin Σ ‖p_j − p_i − R_i t_ij‖²_W; returns rotations (n,d,d), positions (n,d), info."""
     args = dict(locals())
-    try:
-        from threadpoolctl import threadpool_limits  # a project dependency; optional here
-    except ImportError:
-        blas_threads = None
-    if blas_threads is None:
+    with blas_limits(blas_threads):
         return _chordal(**args)
-    with threadpool_limits(limits=blas_threads, user_api="blas"):
-        return _chordal(**args)
+
+
+_CONTROLLER: list = []   # one threadpoolctl controller per process, created on first use
+
+
+def blas_limits(threads: int | None):
+    """Context limiting BLAS to ``threads`` (None: a no-op), like ``threadpool_limits(threads, "blas")``
+    but through one cached controller: ``threadpool_limits`` rescans the loaded libraries (~1 ms a call)."""
+    if threads is None:
+        return contextlib.nullcontext()
+    if not _CONTROLLER:
+        try:
+            from threadpoolctl import ThreadpoolController  # a project dependency; optional here
+        except ImportError:
+            _CONTROLLER.append(None)
+        else:
+            _CONTROLLER.append(ThreadpoolController())
+    if _CONTROLLER[0] is None:
+        return contextlib.nullcontext()
+    return _CONTROLLER[0].limit(limits=threads, user_api="blas")
 
 
 def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver, preconditioner,

@@ -11,9 +11,9 @@ import time
 import warnings
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from ..dd.index_sets import vertex_dofs
+from ..initialization.chordal import blas_limits
 from ..linearization.base import Linearizer, LinearSystem
 from .gauge import free_components
 from .hooks import verbose_printer
@@ -228,7 +228,7 @@ class SchwarzOptimizer:
         """
         if self.nonlinear_params.blas_threads is None:
             return self._iterate()
-        with threadpool_limits(limits=self.nonlinear_params.blas_threads, user_api="blas"):
+        with blas_limits(self.nonlinear_params.blas_threads):  # one cached controller: no library rescan
             return self._iterate()
 
     def _iterate(self) -> bool:
