@@ -194,7 +194,10 @@ def solve(args, comm) -> dict:
         from petsc4py import PETSc
 
         nnz = int(linear.A.getInfo(PETSc.Mat.InfoType.LOCAL)["nz_used"]) if linear.A is not None else 0
+        import resource
+
         work = {"rows": hi - lo, "nnz": nnz, "cpu_seconds": time.process_time() - cpu0,
+                "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
                 "subdomains": int(len(linear.layout.subdomains(rank))) if len(linear.layout.subdomain_rank) else 0,
                 "seconds": {k: float(v) for k, v in linear.timings.items()},
                 "linearization": "distributed" if getattr(opt, "distributed", False) else "replicated",
@@ -205,6 +208,9 @@ def solve(args, comm) -> dict:
             work["seconds"].update(optimizer_init=float(opt.init_seconds), distributed_setup=float(opt.setup_seconds))
         per_rank = comm.gather(work, root=0)
     phase_max = {k: float(comm.allreduce(v, op=_max())) for k, v in split.items()}
+    import resource
+
+    rss = float(comm.allreduce(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, op=_max()))
     report = {
         **info, "backend": "serial" if args.serial else "petsc", "ranks": comm.Get_size(),
         "local_solver": linear.local_solver if linear is not None else None,
@@ -222,7 +228,7 @@ def solve(args, comm) -> dict:
         "linearization": "serial" if args.serial else ("distributed" if getattr(opt, "distributed", False)
                                                        else "replicated"),
         "replicated_reason": getattr(opt, "replicated", "") or None,
-        "ranks_agree": bool(agree), "per_rank": per_rank, "output": args.output,
+        "peak_rss_mb_max_over_ranks": rss, "ranks_agree": bool(agree), "per_rank": per_rank, "output": args.output,
     }
     if args.output and rank == 0:
         _write(args, loaded, graph, values)
