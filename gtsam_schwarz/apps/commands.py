@@ -1,4 +1,4 @@
-"""The ``solve``, ``compare``, ``synth`` and ``demo`` commands of the ``gtsam-schwarz`` script.
+"""The ``solve``, ``compare`` and ``synth`` commands (``demo``: demo.py) of the ``gtsam-schwarz`` script.
 
 Each ``add_*`` registers a subcommand on an argparse subparsers object; each ``run_*`` takes the
 parsed arguments and returns an exit code. Bad input raises :class:`UsageError` (exit code 2).
@@ -595,26 +595,7 @@ def run_synth(args) -> int:
     return 0
 
 
-# -- demo ----------------------------------------------------------------------------------------
-DEMO_OURS = ("gdsw", "one-level", "block-jacobi", "none")
-DEMO_GTSAM = ("gtsam-lm", "gtsam-gn")
-DEMO_CONVERGENCE = ("none", "block-jacobi", "one-level", "gdsw")
-
-
-def add_demo(sub) -> None:
-    p = sub.add_parser("demo", help="the main job: the model problem solved with GDSW next to GTSAM",
-                       description="Solve the paper's model problem (one subdomain per loop) with GTSAM's LM and "
-                                   "GN and with our GN and each preconditioner; print the table with ATE and RPE "
-                                   "against the known ground truth, and write a trajectory and a convergence plot.")
-    p.add_argument("--loops", type=positive_int, default=16, metavar="L", help="number of loops (default 16)")
-    p.add_argument("--points-per-side", type=positive_int, default=16, metavar="P",
-                   help="poses per side of the square (default 16)")
-    p.add_argument("--out", default=".", metavar="DIR",
-                   help="folder for the two PNG plots (default: current folder; created if its parent exists)")
-    _add_quiet(p)
-    p.set_defaults(run=run_demo)
-
-
+# -- shared by demo (demo.py) ---------------------------------------------------------------
 def make_out_dir(option: str, path: str) -> pathlib.Path:
     """The output folder ``path``, created if missing; its parent must exist (no silent trees)."""
     out = pathlib.Path(path)
@@ -633,32 +614,8 @@ def make_out_dir(option: str, path: str) -> pathlib.Path:
     return out
 
 
-def run_demo(args) -> int:
-    from .solve_plots import convergence_figure, trajectory_figure
-    from ..problems import square_loops
-
-    out = make_out_dir("--out", args.out)
-    prob = square_loops(args.loops, args.points_per_side, sigma=0.01, seed=0)
-    print(f"model problem: {args.loops} loops x {args.points_per_side} points per side = {prob.poses} poses "
-          f"(sigma 0.01, seed 0), one subdomain per loop", flush=True)
-    with _progress(args, "demo", total=len(DEMO_OURS) + len(DEMO_GTSAM) + len(DEMO_CONVERGENCE)) as progress:
-        rows = compare_rows(prob.graph, prob.initial, ours=DEMO_OURS, gtsam_solvers=DEMO_GTSAM, method="gn",
-                            partition="segments", subdomains=args.loops, progress=progress)
-        _add_accuracy(rows, prob.ground_truth)
-        initial = _accuracy(prob.initial, prob.ground_truth)
-        with progress.suspended():
-            print_table(rows)
-            print(f"initial guess (dead reckoning): ATE {initial['ate_rmse']:.4g} m, "
-                  f"RPE {initial['rpe_rmse']:.4g} m")
-            print(ACCURACY_NOTE, flush=True)
-        gdsw = next(r for r in rows if r["solver"].endswith("-gdsw"))
-        traj = trajectory_figure(out / "demo_trajectory.png", prob, gdsw["values"], subdomains=args.loops)
-        conv = convergence_figure(out / "demo_convergence.png", prob, subdomains=args.loops, names=DEMO_CONVERGENCE,
-                                  progress=progress)
-    print(f"wrote {traj} and {conv}")
-    return 0
-
-
 def add_all(sub) -> None:
+    from .demo import add_demo
+
     for add in (add_solve, add_compare, add_synth, add_demo):
         add(sub)

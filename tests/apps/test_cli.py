@@ -118,13 +118,29 @@ def test_compare_json_rows(tmp_path):
     assert gdsw["final_error"] <= ref * (1 + 1e-6)
 
 
-def test_demo_writes_plots(tmp_path):
-    proc = cli("demo", "--loops", 4, "--points-per-side", 4, "--out", tmp_path)
+def test_demo_quick_json_reports_the_three_parts_and_writes_the_figure(tmp_path):
+    proc = cli("demo", "--quick", "--json", "--out", tmp_path, "-q")
     assert proc.returncode == 0, proc.stderr
-    assert "gtsam-lm" in proc.stdout and "schwarz-gn-gdsw" in proc.stdout
-    for name in ("demo_trajectory.png", "demo_convergence.png"):
-        assert (tmp_path / name).stat().st_size > 1000
-        assert name in proc.stdout
+    report = json.loads(proc.stdout)
+    rows = {r["solver"]: r for r in report["solve"]["rows"]}
+    ref = rows["GTSAM LM"]["final_error"]
+    ours = rows["ours (auto)"]
+    assert abs(ours["final_error"] - ref) <= 1e-6 * ref and ours["converged"]
+    assert ours["ate_rmse"] < report["solve"]["initial"]["ate_rmse"]
+    largest = report["scaling"][-1]
+    assert largest["gdsw"] < largest["one-level"] < largest["block-jacobi"]  # the paper's ordering
+    for r in report["fill"]:
+        assert r["fill"] > 1 and r["rgdsw-linear"]["residual"] < 1e-7 and r["direct"]["residual"] < 1e-9
+        assert r["auto_choice"] in ("direct", "gdsw", "rgdsw-linear")
+    assert (tmp_path / "demo.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_demo_prints_tables(tmp_path):
+    proc = cli("demo", "--quick", "--out", tmp_path / "demo", "-q")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr == ""
+    for text in ("1. Same answer", "2. Bounded CG", "3. Where fill explodes", "GTSAM LM", "ours (auto)", "demo.png"):
+        assert text in proc.stdout
 
 
 @pytest.mark.datasets

@@ -329,18 +329,6 @@ def test_solve_reports_ate_rpe_against_a_ground_truth(synth):
     one_line_error(cli("solve", synth / "loops.g2o", "--ground-truth", synth / "nothing.tum"), "no such file")
 
 
-def test_demo_prints_ate_and_rpe_per_solver(tmp_path):
-    proc = cli("demo", "--loops", 2, "--points-per-side", 3, "--out", tmp_path / "demo", "--quiet")
-    assert proc.returncode == 0, proc.stderr
-    assert proc.stderr == ""
-    header = next(line for line in proc.stdout.splitlines() if line.startswith("solver"))
-    assert "ATE [m]" in header and "RPE [m]" in header
-    rows = [line.split() for line in proc.stdout.splitlines() if line.startswith(("gtsam-", "schwarz-"))]
-    assert len(rows) == 6 and all(float(r[-2]) > 0 and float(r[-1]) > 0 for r in rows)
-    assert "initial guess (dead reckoning): ATE" in proc.stdout
-    assert (tmp_path / "demo" / "demo_trajectory.png").read_bytes()[:8] == PNG
-
-
 def test_loader_warnings_are_printed_and_strict_refuses(tmp_path):
     f = tmp_path / "extra.g2o"
     f.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nFOO 1\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n")
