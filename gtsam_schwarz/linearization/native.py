@@ -585,7 +585,6 @@ class NativeLinearizer:
         self._zero = size          # S[size] = 0: entries only GTSAM-linearized factors fill
         self._src_size = size + 1
         self._src = P.source_index(puts, fill=size)
-        P.drop_plan_index()   # only the plan needs it
         self._other_pos = None  # (indptr, indices, positions) of the last H of the other factors
 
     # -----------------------------------------------------------------------------------------

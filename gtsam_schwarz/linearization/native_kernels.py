@@ -868,10 +868,9 @@ class BlockPattern:
 
     Variables v own dofs offsets[v]:offsets[v+1]; blocks are the diagonal ones plus both orientations of
     every coupled pair, numbered k in row-major order (row v: its lower pairs, its diagonal, its upper
-    pairs, from one sort of the distinct pairs). If all variables have d dofs the CSR arrays come from
-    scipy's BSR→CSR conversion of a block matrix holding k·d² + a·d + b, which also gives every CSR
-    position's block entry (``_perm``); otherwise block entry (a, b) of block k sits at
-    indptr[offsets[row_k] + a] + colstart_k + b."""
+    pairs, from one sort of the distinct pairs). Block entry (a, b) of block k sits at
+    indptr[offsets[row_k] + a] + colstart_k + b; if all variables have d dofs that is
+    bptr[v]·(d² − d) + k·d + a·rowlen[v]·d + b, and the CSR arrays come from scipy's BSR→CSR conversion."""
 
     def __init__(self, dims: np.ndarray, rows: np.ndarray, cols: np.ndarray):
         dims = np.asarray(dims, dtype=np.int64)
@@ -905,22 +904,19 @@ class BlockPattern:
         self.block_rows, self.block_cols = br, bc
         dvals = sorted_unique(dims).tolist()
         self.uniform = len(dvals) == 1
-        self._perm = None
-        if self.uniform:   # scipy's BSR→CSR lays out the entries; int block numbers give each one's origin
+        if self.uniform:   # scipy's BSR→CSR lays out the entries (from 1 byte per entry, not 16)
             d = dvals[0]
             self.d = d
             self.nnz = nb * d * d
             self.index_dtype = np.int32 if max(n, self.nnz) < 2**31 - 1 else np.int64
-            blocks = np.arange(self.nnz, dtype=np.int64).reshape(nb, d, d)
-            C = sp.bsr_matrix((blocks, bc.astype(self.index_dtype), bptr.astype(self.index_dtype)), shape=(n, n),
-                              blocksize=(d, d)).tocsr()
-            del blocks
+            C = sp.bsr_matrix((np.ones((nb, d, d), dtype=bool), bc.astype(self.index_dtype),
+                               bptr.astype(self.index_dtype)), shape=(n, n), blocksize=(d, d)).tocsr()
             if int(C.indptr[-1]) != self.nnz:
                 raise RuntimeError("unexpected BSR→CSR conversion")
-            self._perm = C.data   # CSR position → k·d² + a·d + b (used once, by the plan)
             self._indptr64 = C.indptr.astype(np.int64)
             self.indptr = C.indptr.astype(self.index_dtype, copy=False)
             self.indices = C.indices.astype(self.index_dtype, copy=False)
+            self._bptr, self._rowlen = bptr, rowlen
             del C
         else:
             cd = dims[bc]
@@ -943,10 +939,6 @@ class BlockPattern:
         for arr in (self.indptr, self.indices):
             arr.flags.writeable = False
 
-    def drop_plan_index(self) -> None:
-        """Free what only :meth:`source_index` needs (8 bytes per entry of H)."""
-        self._perm = None
-
     def _positions(self, k: np.ndarray, dr: int, dc: int) -> np.ndarray:
         row0 = self.offsets[self.block_rows[k]]
         return (self._indptr64[row0[:, None] + np.arange(dr)][:, :, None]
@@ -967,12 +959,17 @@ class BlockPattern:
     def source_index(self, assignments, fill: int) -> np.ndarray:
         """Gather index of the CSR data: entry (a, b) of block (rows[t], cols[t]) takes source
         val[t, a, b] for every (rows, cols, val) in ``assignments`` (blocks at most once), others ``fill``."""
-        if self.uniform:
+        if self.uniform:   # entry (a, b) of block k in row v: bptr[v]·(d² − d) + k·d + a·rowlen[v]·d + b
             d = self.d
-            src = np.full((len(self.block_keys), d, d), fill, dtype=np.int64)
-            for rows, cols, val in assignments:
-                src[self.block_index(rows, cols)] = val
-            return np.take(src.reshape(-1), self._perm)
+            a = np.arange(d)
+            blocks = [(self.block_index(rows, cols), val) for rows, cols, val in assignments]
+            covered = sum(len(k) for k, _ in blocks) == len(self.block_keys)   # each block at most once
+            src = np.empty(self.nnz, dtype=np.int64) if covered else np.full(self.nnz, fill, dtype=np.int64)
+            for k, val in blocks:
+                v = self.block_rows[k]
+                row = (self._bptr[v] * (d * d - d) + k * d)[:, None] + (self._rowlen[v] * d)[:, None] * a   # (t, d)
+                src[row[:, :, None] + a] = val
+            return src
         src = np.full(self.nnz, fill, dtype=np.int64)
         for rows, cols, val in assignments:
             k = self.block_index(rows, cols)
