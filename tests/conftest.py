@@ -50,3 +50,21 @@ def gtsam_gauss_newton(graph, initial, iterations: int) -> gtsam.Values:
     params.setAbsoluteErrorTol(0.0)
     params.setMaxIterations(iterations)
     return gtsam.GaussNewtonOptimizer(graph, initial, params).optimize()
+
+
+def run_cli(*args, cwd=None, timeout=600, env=None, **kw):
+    """``python -m gtsam_schwarz.apps.cli ARGS`` in a child process, output captured as text."""
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "gtsam_schwarz.apps.cli", *map(str, args)], capture_output=True,
+                          text=True, cwd=cwd, timeout=timeout, env=env, **kw)
+
+
+def one_line_error(proc, *words):
+    """The command exited 2 with exactly one line on stderr (no traceback) containing ``words``."""
+    assert proc.returncode == 2, (proc.returncode, proc.stderr)
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    for w in words:
+        assert w in lines[0], lines[0]

@@ -1,27 +1,16 @@
 """The gtsam-schwarz command line, run as a user would (subprocess)."""
 
 import json
-import subprocess
-import sys
 
 import gtsam
 import pytest
 
-from conftest import dataset
+from conftest import dataset, one_line_error, run_cli
 from gtsam_schwarz import load_graph
 
 
 def cli(*args, cwd=None, timeout=600):
-    return subprocess.run([sys.executable, "-m", "gtsam_schwarz.apps.cli", *map(str, args)], capture_output=True,
-                          text=True, cwd=cwd, timeout=timeout)
-
-
-def one_line_error(proc, *words):
-    assert proc.returncode == 2, proc.stderr
-    lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
-    for w in words:
-        assert w in lines[0], lines[0]
+    return run_cli(*args, cwd=cwd, timeout=timeout)
 
 
 @pytest.fixture(scope="module")

@@ -13,6 +13,8 @@ import gtsam
 import numpy as np
 import pytest
 
+from conftest import one_line_error, run_cli
+
 import gtsam_schwarz
 from gtsam_schwarz import load_graph
 
@@ -22,16 +24,7 @@ PNG, PDF = b"\x89PNG\r\n\x1a\n", b"%PDF"
 
 
 def cli(*args, cwd=None, timeout=120, **kw):
-    return subprocess.run([sys.executable, "-m", "gtsam_schwarz.apps.cli", *map(str, args)], capture_output=True,
-                          text=True, cwd=cwd, timeout=timeout, env=ENV, **kw)
-
-
-def one_line_error(proc, *words):
-    assert proc.returncode == 2, (proc.returncode, proc.stderr)
-    lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
-    for w in words:
-        assert w in lines[0], lines[0]
+    return run_cli(*args, cwd=cwd, timeout=timeout, env=ENV, **kw)
 
 
 @pytest.fixture(scope="module")

@@ -3,29 +3,18 @@ survey cases and its ours-direct / ours-schwarz rows (in process, on small grids
 
 import json
 import math
-import subprocess
-import sys
 
 import gtsam
 import pytest
 
-from conftest import DATASETS
+from conftest import DATASETS, one_line_error, run_cli
 import gtsam_schwarz as gs
 from gtsam_schwarz import load_graph
 from gtsam_schwarz.apps import bench
 
 
 def cli(*args):
-    return subprocess.run([sys.executable, "-m", "gtsam_schwarz.apps.cli", *map(str, args)], capture_output=True,
-                          text=True, timeout=300)
-
-
-def one_line_error(proc, *words):
-    assert proc.returncode == 2, proc.stderr
-    lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
-    for w in words:
-        assert w in lines[0], lines[0]
+    return run_cli(*args, timeout=300)
 
 
 @pytest.fixture(scope="module")
