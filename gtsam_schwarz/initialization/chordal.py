@@ -219,26 +219,26 @@ class _BlockSystem:
         nb = int(bptr[-1])
         bcols = np.empty(nb, dtype=np.int64)
         bcols[upper], bcols[lower], bcols[diag] = uhi, ulo, np.arange(n)
-        brow = np.repeat(np.arange(n), rowlen)
-        # entry (a, b) of block p (row v): bptr[v]·d² + a·rowlen[v]·d + (p − bptr[v])·d + b
+        itype = np.int32 if nb * d * d < 2**31 else np.int64
+        C = sp.bsr_matrix((np.ones((nb, d, d), dtype=bool), bcols.astype(itype), bptr.astype(itype)),
+                          shape=(n * d, n * d), blocksize=(d, d)).tocsr()   # the layout (1 byte per entry)
+        self.indptr, self.indices, self.nnz = C.indptr, C.indices, nb * d * d
         a = np.arange(d)
-        base = bptr[brow] * (d * d - d) + np.arange(nb) * d
-        self.entry = base[:, None, None] + (rowlen[brow] * d)[:, None, None] * a[None, :, None] + a[None, None, :]
-        nnz = nb * d * d
-        self.indptr = (bptr[:-1, None] * d * d + (rowlen * d)[:, None] * a[None, :]).ravel()
-        self.indptr = np.append(self.indptr, nnz).astype(np.int32 if nnz < 2**31 else np.int64)
-        indices = np.empty(nnz, dtype=self.indptr.dtype)
-        indices[self.entry.ravel()] = np.broadcast_to(bcols[:, None, None] * d + a[None, None, :], (nb, d, d)).ravel()
-        self.indices = indices
-        self.nnz = nnz
+
+        def entries(p, v):
+            """CSR positions (t, d, d) of blocks p in block rows v: bptr[v]·(d² − d) + p·d + a·rowlen[v]·d + b."""
+            row = (bptr[v] * (d * d - d) + p * d)[:, None] + (rowlen[v] * d)[:, None] * a
+            return row[:, :, None] + a
+
         ij = np.where(i < j, upper[pid], lower[pid])
         ji = np.where(i < j, lower[pid], upper[pid])
-        self.contrib = self.entry[np.concatenate([diag[i], diag[j], ij, ji])].ravel()   # (4m·d²,)
-        fixed = np.zeros(n, dtype=bool)
-        fixed[anchors] = True
+        self.contrib = np.concatenate([entries(diag[i], i), entries(diag[j], j), entries(ij, i),
+                                       entries(ji, j)]).reshape(-1)   # (4m·d²,)
+        fixed = np.zeros(n * d, dtype=bool)
         self.fixed_dofs = (anchors[:, None] * d + a).ravel()
-        self.fixed_entries = self.entry[fixed[brow] | fixed[bcols]].ravel()
-        self.fixed_diagonal = self.entry[diag[anchors]][:, a, a].ravel()
+        fixed[self.fixed_dofs] = True
+        self.fixed_entries = np.flatnonzero(np.repeat(fixed, np.diff(self.indptr)) | fixed[self.indices])
+        self.fixed_diagonal = entries(diag[anchors], anchors)[:, a, a].ravel()
 
     def matrix(self, blocks, rhs: np.ndarray, x_fixed: np.ndarray):
         """The anchored system (A, b) from the edges' (ii, jj, ij, ji) blocks, the free rows' right-hand

@@ -847,14 +847,21 @@ class NativeLinearizer:
                 continue
             if K is self._k2:
                 c, s_ = np.cos(f.z[2]), np.sin(f.z[2])
-                R = np.stack([np.stack([c, -s_], -1), np.stack([s_, c], -1)], -2)
+                R = np.empty((f.size, 2, 2))
+                R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1] = c, -s_, s_, c
                 t = f.z[:2].T.copy()
-                U = np.zeros((f.R.shape[1], 3, 3))
-                U[:, 0, 0], U[:, 0, 1], U[:, 0, 2], U[:, 1, 1], U[:, 1, 2], U[:, 2, 2] = f.R
+                u00, u01, u02, u11, u12, u22 = f.R   # Ω = UᵀU of the upper-triangular U, term by term
+                info = np.empty((f.size, 3, 3))
+                info[:, 0, 0] = u00 * u00
+                info[:, 0, 1] = info[:, 1, 0] = u00 * u01
+                info[:, 0, 2] = info[:, 2, 0] = u00 * u02
+                info[:, 1, 1] = u01 * u01 + u11 * u11
+                info[:, 1, 2] = info[:, 2, 1] = u01 * u02 + u11 * u12
+                info[:, 2, 2] = u02 * u02 + u12 * u12 + u22 * u22
             else:
                 R, t, U = f.zR, f.zt, f.R
-            out[name] = {"i": f.i, "j": f.j, "R": R, "t": t,
-                         "information": np.swapaxes(U, 1, 2) @ U}
+                info = np.swapaxes(U, 1, 2) @ U
+            out[name] = {"i": f.i, "j": f.j, "R": R, "t": t, "information": info}
         return out
 
     def with_poses(self, state: NativeState, rotations: np.ndarray, positions: np.ndarray) -> NativeState:
