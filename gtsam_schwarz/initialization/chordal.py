@@ -243,7 +243,10 @@ class _BlockSystem:
     def matrix(self, blocks, rhs: np.ndarray, x_fixed: np.ndarray):
         """The anchored system (A, b) from the edges' (ii, jj, ij, ji) blocks, the free rows' right-hand
         side ``rhs`` (n·d, k) and the anchored dofs' values ``x_fixed`` (n_fixed·d, k)."""
-        data = np.bincount(self.contrib, np.concatenate(blocks).ravel(), minlength=self.nnz)
+        values = np.concatenate(blocks).ravel()
+        data = np.bincount(self.contrib, values.real, minlength=self.nnz)
+        if np.iscomplexobj(values):   # Hermitian (2D rotations as unit complex numbers)
+            data = data + 1j * np.bincount(self.contrib, values.imag, minlength=self.nnz)
         A = sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n * self.d,) * 2)
         A.has_sorted_indices = True
         x = np.zeros_like(rhs)
@@ -520,17 +523,25 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
             tree_cache.append(_spanning_tree(n, edges, w_rot, anchors))
         return tree_cache[0]
 
-    # the direct path assembles both systems into one CSR pattern (no slicing, one symbolic analysis)
-    system = _BlockSystem(n, d, i, j, anchors) if not cg and rotation == "chordal" else None
-    factor = []
+    # the direct path assembles both systems into one CSR pattern (no slicing, one symbolic analysis).
+    # 2D: a pattern with one unknown per pose: rotations x_i ∈ ℂ (X_i e₀, rotated by complex products)
+    # and, for isotropic translation information, the x and y of the positions as two right-hand sides
+    direct_path = not cg and rotation == "chordal"
+    scalar = direct_path and d == 2
+    system = _BlockSystem(n, 1 if scalar else d, i, j, anchors) if direct_path else None
+    factors = {}
 
-    def direct(blocks, rhs, x_fixed):
-        A, b = system.matrix(blocks, rhs, x_fixed)
-        if factor:
-            factor[0].refactor(A)
+    def direct(blocks, rhs, x_fixed, on=None):
+        on = on or system
+        A, b = on.matrix(blocks, rhs, x_fixed)
+        if np.iscomplexobj(A.data):   # CSR of a Hermitian A is the CSC of conj(A): conjugate it back
+            A = sp.csc_matrix((np.conj(A.data), A.indices, A.indptr), shape=A.shape)
+        key = (id(on), A.dtype.kind)
+        if key in factors:
+            factors[key].refactor(A)
         else:
-            factor.append(SparseCholesky(A, "the chordal normal equations"))
-        return np.asarray(factor[0].solve(b)).reshape(rhs.shape)
+            factors[key] = SparseCholesky(A, "the chordal normal equations")
+        return np.asarray(factors[key].solve(b)).reshape(rhs.shape)
 
     red_d, red_1 = _Reduced(n, d, anchors), _Reduced(n, 1, anchors)
     layout = None
@@ -599,7 +610,14 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
             Xt = full_blocks(np.column_stack([T(B[:, k]) for k in range(cols)]))
             return np.swapaxes(project_to_so(np.swapaxes(Xt, 1, 2)), 1, 2)
 
-        if system is not None:  # W = w·I: SᵀW and WS are exact scalings
+        if scalar:  # ‖x_j − R_ijᵀ x_i‖²: x_j − a x_i in ℂ with a = e^{−iδ_ij}
+            w = w_rot.astype(complex)
+            a_ij = R_meas[:, 0, 0] - 1j * R_meas[:, 1, 0]
+            x_fix = X_fix.reshape(-1, 2)   # (x₀, x₁) = X e₀ of every anchor
+            z_fix = (x_fix[:, 0] + 1j * x_fix[:, 1]).reshape(-1, 1)
+            z = direct((w, w, -w * np.conj(a_ij), -w * a_ij), np.zeros((n, 1), dtype=complex), z_fix)[:, 0]
+            X, infos = np.column_stack([z.real, z.imag]).reshape(n * d, cols), []
+        elif system is not None:  # W = w·I: SᵀW and WS are exact scalings
             StW, WS = w_rot[:, None, None] * R_meas, w_rot[:, None, None] * S
             X, infos = direct((StW @ S, W, -StW, -WS), np.zeros((n * d, cols)), X_fix), []
         else:
@@ -629,10 +647,21 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
 
     # ---- translations ---------------------------------------------------------------------
     # the BetweenFactor translation error lives in the frame R_i R_ij: W = (R_i R_ij) Ω_tt (R_i R_ij)ᵀ
-    Rw = rotations[i] @ R_meas
-    W = Rw @ W_loc @ np.swapaxes(Rw, 1, 2)
     c = np.einsum("kab,kb->ka", rotations[i], t_meas)
-    if system is not None:  # S = I: the blocks are ±W
+    isotropic = scalar and bool(np.all(W_loc[:, 0, 1] == 0) and np.all(W_loc[:, 1, 0] == 0)
+                                and np.all(W_loc[:, 0, 0] == W_loc[:, 1, 1]))
+    if not isotropic:
+        Rw = rotations[i] @ R_meas
+        W = Rw @ W_loc @ np.swapaxes(Rw, 1, 2)
+    if isotropic:  # W = R (wI) Rᵀ = wI: x and y decouple, one scalar Laplacian, two right-hand sides
+        w = W_loc[:, 0, 0]
+        wc = w[:, None] * c
+        b = np.stack([np.bincount(j, wc[:, a], minlength=n) - np.bincount(i, wc[:, a], minlength=n)
+                      for a in range(d)], -1)
+        P, infos = direct((w, w, -w, -w), b, p_fix), []
+    elif system is not None:  # S = I: the blocks are ±W
+        if scalar:
+            system = _BlockSystem(n, d, i, j, anchors)
         Wc = np.einsum("kab,kb->ka", W, c)
         b = np.stack([np.bincount(j, Wc[:, a], minlength=n) - np.bincount(i, Wc[:, a], minlength=n)
                       for a in range(d)], -1)

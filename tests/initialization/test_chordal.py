@@ -355,3 +355,48 @@ def test_against_gtsam_initialization(name, is3d, vs_gtsam, vs_file):
     extent = np.ptp(pg, axis=0).max()
     assert np.median(dR) < 0.15 and dR.max() < 0.3
     assert np.median(dp) < 0.02 * extent and dp.max() < 0.05 * extent
+
+
+@pytest.mark.parametrize("d", [1, 2, 3])
+def test_block_system_is_the_anchored_normal_equations(d):
+    """The direct path's CSR assembly (repeated pairs, both orientations, anchors as identity rows)
+    equals the sliced normal equations of the definition."""
+    rng = np.random.default_rng(60 + d)
+    n = 40
+    e = rng.integers(0, n, size=(150, 2))
+    e = e[e[:, 0] != e[:, 1]]
+    e = np.vstack([e, e[:10], e[:5, ::-1]])  # repeated pairs, in both orientations
+    i, j = e.T
+    S = rng.normal(size=(len(e), d, d))
+    A_ = rng.normal(size=(len(e), d, d))
+    W = A_ @ np.swapaxes(A_, 1, 2) + np.eye(d)
+    anchors = np.array([3, 17])
+    A, b = chordal_module._normal_equations(n, d, i, j, S, W, rng.normal(size=(len(e), d)))
+    x_fixed = rng.normal(size=(anchors.size * d, 2))
+    system = chordal_module._BlockSystem(n, d, i, j, anchors)
+    B = np.column_stack([b, 2 * b])
+    A_sys, b_sys = system.matrix(chordal_module._edge_blocks(S, W), B, x_fixed)
+    red = chordal_module._Reduced(n, d, anchors)
+    A_ff, A_fa = red.restrict(A)
+    dense = A_sys.toarray()
+    np.testing.assert_allclose(dense[np.ix_(red.free, red.free)], A_ff.toarray(), rtol=1e-13, atol=1e-12)
+    np.testing.assert_array_equal(dense[np.ix_(red.fixed, red.fixed)], np.eye(red.fixed.size))
+    assert not np.any(dense[np.ix_(red.free, red.fixed)]) and not np.any(dense[np.ix_(red.fixed, red.free)])
+    np.testing.assert_allclose(b_sys[red.free], B[red.free] - A_fa @ x_fixed, rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(b_sys[red.fixed], x_fixed)
+    assert A_sys.has_sorted_indices and np.all(np.diff(A_sys.indices[A_sys.indptr[0]:A_sys.indptr[1]]) > 0)
+
+
+def test_2d_direct_path_in_complex_numbers_matches_real_cg():
+    """2D direct: rotations as one complex unknown per pose, isotropic translations as a scalar Laplacian
+    with two right-hand sides; the same minimizer as CG on the real 2×2-block systems."""
+    rng = np.random.default_rng(8)
+    R, p = trajectory(300, 2, rng)
+    e, Rij, tij = pose_graph(R, p, 90, rng, noise=0.1)
+    w = rng.uniform(0.5, 4.0, len(e))
+    for info in (w, np.stack([np.diag([x, x, 3 * x]) for x in w]), np.stack([np.diag([x, 2 * x, x]) for x in w])):
+        direct = chordal_initialization(300, e, Rij, tij, info, anchor=4, anchor_pose=(R[4], p[4]), solver="direct")
+        cg = chordal_initialization(300, e, Rij, tij, info, anchor=4, anchor_pose=(R[4], p[4]), tol=1e-13)
+        np.testing.assert_allclose(direct.rotations, cg.rotations, atol=1e-9)
+        np.testing.assert_allclose(direct.positions, cg.positions, atol=1e-8)
+        np.testing.assert_allclose(direct.rotations[4], R[4], atol=1e-12)
