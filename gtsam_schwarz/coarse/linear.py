@@ -51,7 +51,8 @@ from ..dd.interface import Interface
 DEFAULT_SPACING = np.inf  # gdsw-linear: nodes at both ends of each entity only: rigid ⊗ {1, linear}
 JUNCTION_SPACING = 3.25  # rgdsw-linear on curves (2D): ~18 coarse vectors per subdomain, ~37 CG on lawnmower surveys
 FACE_RATIO = 3.0  # an entity with more vertices per unit of intrinsic length is a face (2D curves: ≤ 2)
-FACE_SPACING = 4.0  # rgdsw-linear on faces (3D): nodes ~4 hops apart
+FACE_SPACING = 6.0  # rgdsw-linear with faces (3D): nodes more than 3 two-hop steps apart, every vertex within 3 of one
+FACE_RADIUS = 5  # rgdsw-linear with faces (3D): distance hats max(0, 1 − hops/5), normalized
 
 
 def _within_components(interface: Interface) -> sp.csr_matrix:
@@ -121,7 +122,8 @@ def linear_partition(interface: Interface, spacing=DEFAULT_SPACING, coordinate: 
     return pair_v, pair_node.ravel(), weight, len(used), node_component[used]
 
 
-def junction_linear_partition(interface: Interface, spacing=JUNCTION_SPACING, face_spacing=FACE_SPACING):
+def junction_linear_partition(interface: Interface, spacing=JUNCTION_SPACING, face_spacing=FACE_SPACING,
+                              face_radius=FACE_RADIUS):
     """:func:`linear_partition` with the end nodes of entities that meet merged into junction nodes,
     and faces (3D) covered by sampled nodes instead of hats along one coordinate.
 
@@ -134,10 +136,13 @@ def junction_linear_partition(interface: Interface, spacing=JUNCTION_SPACING, fa
     functions are continuous across junctions.
 
     An entity with more than ``FACE_RATIO`` vertices per unit of its intrinsic length is a face (a
-    2D patch of a 3D decomposition; 2D curves have at most 2): hats along one coordinate would be
-    bands across it, so it gets nodes about ``face_spacing`` hops apart by farthest-point sampling
-    instead (:func:`sample_nodes`) and distance hats as weights (:func:`distance_hats`); its nodes merge with the other entities' end
-    nodes and nodes at most two graph edges away.
+    2D patch of a 3D decomposition; 2D curves have at most 2). An interface with faces is covered
+    as a whole instead, across entity boundaries: nodes are a maximal set of interface vertices
+    pairwise more than ⌊face_spacing/2⌋ steps apart in the two-hop graph of Γ, junction vertices
+    (more subdomains) first (:func:`spread_nodes`), with distance hats max(0, 1 − hops/face_radius)
+    normalized to sum one as weights (:func:`distance_hats`). The weights are continuous across
+    entities, so nothing is merged; merging sampled nodes transitively (the earlier construction)
+    chained junctions into a few huge nodes as subdomains shrank, and CG grew with their number.
 
     Returns (vertex, node, weight) pairs, the node count, and for each node the component of
     largest multiplicity among its vertices (a merged node's support spans several components:
@@ -151,12 +156,13 @@ def junction_linear_partition(interface: Interface, spacing=JUNCTION_SPACING, fa
     length = np.zeros(nc)
     np.maximum.at(length, comp, t)
     if np.any(np.bincount(comp, minlength=nc) > FACE_RATIO * (length + 1)):
-        # a 3D interface (it has faces): sampled nodes and distance hats on every entity
-        G = _within_components(interface)
-        nodes = sample_nodes(interface, G, t, face_spacing)
-        pair_v, pair_node, weight = distance_hats(G, nodes, face_spacing)
+        # a 3D interface (it has faces): nodes spread over all of Γ, distance hats across entities
+        G = interface.neighbours
+        multiplicity = np.diff(sp.csr_matrix(interface.subdomains).indptr)
+        nodes = spread_nodes(G, face_spacing, multiplicity)
+        pair_v, pair_node, weight = distance_hats(G, nodes, max(face_radius, face_spacing // 2 + 1))
         n_nodes = len(nodes)
-        anchors = (np.arange(n_nodes), nodes)
+        anchors = (np.zeros(0, np.int64), np.zeros(0, np.int64))  # continuous already: no merging
     else:  # curves: hats along each, end nodes merged
         pair_v, pair_node, weight, n_nodes, node_component = linear_partition(interface, spacing, t)
         first = np.r_[True, node_component[1:] != node_component[:-1]]
@@ -181,29 +187,35 @@ def junction_linear_partition(interface: Interface, spacing=JUNCTION_SPACING, fa
     return key // n_merged, key % n_merged, weight, n_merged, representative
 
 
-def sample_nodes(interface: Interface, G: sp.csr_matrix, coordinate: np.ndarray, spacing: float) -> np.ndarray:
-    """Farthest-point sampling on every entity, all at once: each starts with its end (coordinate
-    0), then repeatedly gains the vertex farthest from its nodes (in ``G``, the two-hop graph within
-    entities) until every vertex is within spacing/2 of a node."""
-    comp = interface.component
-    nodes = np.flatnonzero(coordinate == 0)
-    nodes = nodes[np.unique(comp[nodes], return_index=True)[1]]
-    d = dijkstra(G, directed=False, unweighted=True, indices=nodes, min_only=True)
-    cover = max(float(spacing) / 2.0, 0.5)
-    while True:
-        order = np.lexsort((d, comp))
-        far = order[np.r_[comp[order][1:] != comp[order][:-1], True]]  # farthest vertex per entity
-        far = far[d[far] > cover]
-        if len(far) == 0:
-            return nodes
-        nodes = np.r_[nodes, far]
-        d = np.minimum(d, dijkstra(G, directed=False, unweighted=True, indices=far, min_only=True))
+def spread_nodes(G: sp.csr_matrix, spacing: float, multiplicity: np.ndarray, seed: int = 0) -> np.ndarray:
+    """Nodes on the whole interface graph ``G`` about ``spacing`` hops apart: a maximal set of
+    vertices pairwise more than r = ⌊spacing/2⌋ hops apart (Luby's rounds, all at once), so every
+    vertex is within r of a node; vertices shared by more subdomains (junctions) win ties first."""
+    m = G.shape[0]
+    r = max(int(spacing // 2), 1)
+    step = _pattern(G + sp.identity(m, format="csr"))
+    reach = step
+    for _ in range(r - 1):
+        reach = _pattern(reach @ step)
+    reach.sort_indices()
+    rng = np.random.default_rng(seed)
+    priority = multiplicity.astype(float) + 0.5 * rng.random(m)
+    alive = np.ones(m, dtype=bool)
+    chosen = np.zeros(m, dtype=bool)
+    while alive.any():
+        p = np.where(alive, priority, -np.inf)
+        best = np.maximum.reduceat(p[reach.indices], reach.indptr[:-1])
+        win = alive & (p >= best)
+        chosen |= win
+        alive &= ~(reach @ win.astype(float) > 0)
+    return np.flatnonzero(chosen)
 
 
-def distance_hats(G: sp.csr_matrix, nodes: np.ndarray, spacing: float):
-    """Weights max(0, 1 − hops(v, k)/r), r = ⌈spacing⌉, normalized to sum one at every vertex they
-    reach: (vertex, node index, weight) pairs. On a curve with nodes r apart these are the hats."""
-    radius = max(int(np.ceil(spacing)), 1)
+def distance_hats(G: sp.csr_matrix, nodes: np.ndarray, radius: float):
+    """Weights max(0, 1 − hops(v, k)/r), r = ⌈radius⌉, normalized to sum one at every vertex they
+    reach (Shepard's partition of unity): (vertex, node index, weight) pairs. On a curve with nodes r
+    apart these are the hats."""
+    radius = max(int(np.ceil(radius)), 1)
     D = bounded_distances(G, nodes, radius).tocoo()  # node × vertex: 1 + radius − hops
     w = (D.data - 1.0) / radius
     keep = w > 0
