@@ -30,20 +30,31 @@ def free_components(H: sp.csr_matrix, offsets: np.ndarray, geometry: VertexGeome
     n_comp, comp = connected_components(_vertex_graph(H, offsets), directed=False)
     d = geometry.d
     dims = np.diff(offsets)
-    modes = rigid_modes(geometry, np.arange(nv), np.zeros((nv, d)), rotation=False)  # (nv, dim, d)
-    dim = modes.shape[1]
+    dim = 3 if d == 2 else 6
     if np.all(dims == dim):  # components are decoupled: all their modes in d columns, one product
+        modes = np.zeros((nv, dim, d))   # translation t ↦ Rᵀt: Pose2 dofs (x, y), Pose3 dofs (v)
+        modes[:, slice(0, 2) if d == 2 else slice(3, 6), :] = np.swapaxes(geometry.rotations, 1, 2)
         Z = modes.reshape(nv * dim, d)
-        owner = np.repeat(comp, dim)
+        per_vertex = True
     else:
+        modes = rigid_modes(geometry, np.arange(nv), np.zeros((nv, d)), rotation=False)  # (nv, dim, d)
+        dim = modes.shape[1]
         Z = np.zeros((H.shape[0], d))
-        rows = (offsets[:-1, None] + np.arange(dim)).ravel()
-        Z[rows] = modes.reshape(nv * dim, d)
-        owner = np.repeat(comp, dims)
+        Z[(offsets[:-1, None] + np.arange(dim)).ravel()] = modes.reshape(nv * dim, d)
+        per_vertex = False
     HZ = H @ Z
+    HZ *= Z
     DZ = H.diagonal()[:, None] * Z
-    zHz = np.stack([np.bincount(owner, Z[:, k] * HZ[:, k], minlength=n_comp) for k in range(d)], -1)
-    zDz = np.stack([np.bincount(owner, Z[:, k] * DZ[:, k], minlength=n_comp) for k in range(d)], -1)
+    DZ *= Z
+    if per_vertex:   # Σ over each vertex's dofs first, then over the components
+        HZ, DZ, owner = HZ.reshape(nv, dim, d).sum(1), DZ.reshape(nv, dim, d).sum(1), comp
+    else:
+        owner = np.repeat(comp, dims)
+    if n_comp == 1:
+        zHz, zDz = HZ.sum(0)[None], DZ.sum(0)[None]
+    else:
+        zHz = np.stack([np.bincount(owner, HZ[:, k], minlength=n_comp) for k in range(d)], -1)
+        zDz = np.stack([np.bincount(owner, DZ[:, k], minlength=n_comp) for k in range(d)], -1)
     ratio = (zHz / np.where(zDz > 0, zDz, 1.0)).max(axis=1)
     free = np.flatnonzero(ratio < FREE_TOL)
     first = np.full(n_comp, nv, dtype=np.int64)
@@ -52,13 +63,17 @@ def free_components(H: sp.csr_matrix, offsets: np.ndarray, geometry: VertexGeome
 
 
 def _vertex_graph(H: sp.csr_matrix, offsets: np.ndarray) -> sp.csr_matrix:
-    """Vertex adjacency (with repeats) from the first dof row of every vertex: H holds whole blocks."""
+    """Vertex adjacency (with repeats) from the first dof row of every vertex: H holds whole blocks
+    (with d dofs everywhere, only the first column of every block is read)."""
     nv = len(offsets) - 1
-    owner = np.repeat(np.arange(nv), np.diff(offsets))
+    dims = np.diff(offsets)
     starts = H.indptr[offsets[:-1]].astype(np.int64)
     lengths = H.indptr[offsets[:-1] + 1] - starts
+    step = int(dims[0]) if nv and np.all(dims == dims[0]) else 1
+    count = lengths // step
     indptr = np.zeros(nv + 1, dtype=np.int64)
-    np.cumsum(lengths, out=indptr[1:])
-    pos = np.repeat(starts - indptr[:-1], lengths) + np.arange(indptr[-1])
-    cols = owner[H.indices[pos]]
+    np.cumsum(count, out=indptr[1:])
+    pos = np.repeat(starts - step * indptr[:-1], count) + step * np.arange(indptr[-1])
+    cols = H.indices[pos]
+    cols = cols // step if step > 1 else np.repeat(np.arange(nv), dims)[cols]
     return sp.csr_matrix((np.ones(len(cols)), cols, indptr), shape=(nv, nv))

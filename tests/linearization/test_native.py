@@ -743,3 +743,36 @@ def test_public_datasets(name, is3d):
     assert abs(system.H - H).max() < 1e-9 * abs(H).max()
     assert np.linalg.norm(system.g - g) < 1e-9 * np.linalg.norm(g)
     assert system.error == pytest.approx(graph.error(values), rel=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["pose2", "pose3"])
+def test_gauge_check_on_native_hessians(kind):
+    """free_components on native H: a component without a prior is anchored at its first pose, one
+    with a prior is not (two disjoint copies of a loop, with and without priors)."""
+    from gtsam_schwarz.nonlinear.gauge import free_components
+
+    rng = np.random.default_rng(12)
+    g1, v1 = pose_graph(kind, 12, "diagonal", rng)
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values(v1)
+    for k in range(g1.size()):
+        f = g1.at(k)
+        graph.add(f)
+        keys = [X(gtsam.Symbol(key).index() + 100) for key in f.keys()]   # the copy: the same factor, shifted
+        if len(keys) == 2:
+            graph.add(type(f)(keys[0], keys[1], f.measured(), f.noiseModel()))
+    for key in v1.keys():
+        p = v1.atPose2(key) if kind == "pose2" else v1.atPose3(key)
+        values.insert(X(gtsam.Symbol(key).index() + 100), p)
+    lin = NativeLinearizer(graph, values)
+    st = lin.state(values)
+    H = lin.linearize(st).H
+    free = free_components(H, lin.offsets, lin.geometry(st))
+    assert lin.keys[free].tolist() == [X(100)]   # the copy has no prior; the original has one
+    bare = gtsam.NonlinearFactorGraph()
+    for k in range(graph.size()):
+        if len(graph.at(k).keys()) == 2:
+            bare.add(graph.at(k))
+    lin = NativeLinearizer(bare, values)
+    st = lin.state(values)
+    free = free_components(lin.linearize(st).H, lin.offsets, lin.geometry(st))
+    assert lin.keys[free].tolist() == [X(0), X(100)]
