@@ -8,6 +8,7 @@ symbolic downstream (subdomains, gathers, orderings, factorizations) is built on
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -26,6 +27,7 @@ class LinearSystem:
     error: float = float("nan")  # graph error ½‖W^½ r‖² (robust: Σρ) at the linearization point
     diagonal: np.ndarray | None = None  # positions of H's diagonal in H.data (for damping H + λD)
     seconds: dict = field(default_factory=dict)  # time per phase of building it (linearize, export)
+    buffers: list | None = None  # the linearizer's spare value arrays for damped copies (None: fresh ones)
 
     def damped(self, d: np.ndarray) -> sp.csr_matrix:
         """H + diag(d) in H's own pattern (scipy's sum would drop explicit zeros)."""
@@ -33,9 +35,24 @@ class LinearSystem:
         if diagonal is None:
             rows = np.repeat(np.arange(self.H.shape[0]), np.diff(self.H.indptr))
             diagonal = self.diagonal = np.flatnonzero(rows == self.H.indices)
-        data = self.H.data.copy()
+        data = self._spare()
+        np.copyto(data, self.H.data)
         data[diagonal] += d
-        return sp.csr_matrix((data, self.H.indices, self.H.indptr), shape=self.H.shape)
+        D = sp.csr_matrix((data, self.H.indices, self.H.indptr), shape=self.H.shape, copy=False)
+        D.has_sorted_indices = self.H.has_sorted_indices
+        return D
+
+    def _spare(self) -> np.ndarray:
+        """An array for damped values: a pooled one nothing else references (no fresh pages for large H)."""
+        pool = self.buffers
+        if pool is not None:
+            for k in range(len(pool)):
+                if pool[k].shape == self.H.data.shape and sys.getrefcount(pool[k]) == 2:   # pool + argument
+                    return pool[k]
+        buf = np.empty_like(self.H.data)
+        if pool is not None and len(pool) < 2:
+            pool.append(buf)
+        return buf
 
     @property
     def rhs(self) -> np.ndarray:

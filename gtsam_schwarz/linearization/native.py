@@ -714,7 +714,8 @@ class NativeLinearizer:
         H = self.pattern.matrix(data)
         t4 = time.perf_counter()
         self.seconds = {"blocks": t2 - t1, "gather": t3 - t2, "gtsam": t4 - t3}
-        return LinearSystem(H=H, g=g, error=float(error), diagonal=self.diagonal, seconds=dict(self.seconds))
+        return LinearSystem(H=H, g=g, error=float(error), diagonal=self.diagonal, seconds=dict(self.seconds),
+                            buffers=self._buffers.setdefault("damped", []))
 
     def _kind_system(self, K: _Kind, state: NativeState, S: np.ndarray, g: np.ndarray) -> float:
         """Blocks of one pose kind into the source array S (diagonal sums, off-diagonal blocks) and g;
