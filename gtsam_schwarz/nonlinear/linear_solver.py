@@ -20,7 +20,8 @@ from ..krylov import pcg
 from ..schwarz import create_preconditioner
 from ..dd.index_sets import IndexSets
 from ..solvers import SparseCholesky, SparsityPattern, block_diagonal, cholesky_cost, pattern_cholesky_cost, vertex_pattern
-from ..solvers.memory import FACTOR_BYTES, MATRIX_BYTES, available_memory, gib
+from ..schwarz.memory import estimate_two_level, fit_memory
+from ..solvers.memory import FACTOR_BYTES, MATRIX_BYTES, InsufficientMemoryError, available_memory, gib
 from .params import LinearSolverParams
 from .records import SolveResult
 
@@ -187,13 +188,32 @@ class CostModel:
         cg = self.CG_ITERATIONS * (self.SPMV * nnz_H + self.SOLVE * local.nnz_L)
         return self.SCHWARZ_OVERHEAD * (setup + cg)
 
+    # two-level Schwarz from its own symbolic estimate (schwarz.memory.MemoryEstimate): K columns of
+    # the extension, Φ's entries; fitted on rgdsw-linear runs of the survey graphs (docs/survey.md)
+    SOLVE_COLUMN = 1.6e-9  # per factor entry and right-hand-side column of the extension's solve
+    PHI_ENTRY = 3e-8  # assembly per entry of Φ (right-hand side, selection, A₀ products)
+    PHI_APPLY = 1.3e-9  # per entry of Φ and product (Φ z, Φᵀ x)
+    TWO_LEVEL_ITERATIONS = 40  # rgdsw-linear: 36–46 per fresh solve on the surveys
+    TWO_LEVEL_OVERHEAD = 1.3  # measured per solve / predicted before it: 0.8 (13x38x38), 0.33 (8x24x24), 0.8 (2D 300x300)
+
+    def two_level(self, est, nnz_H: int) -> float:
+        """Seconds per solve of CG with a two-level preconditioner: subdomain and interior
+        factorizations, the K-column extension, Φ's assembly, and per iteration an SpMV, the local
+        solves and Φ, Φᵀ."""
+        L, s = est.local, est.interior_share
+        setup = (self.factor_seconds(L.flops) + self.ENTRY * L.nnz_L
+                 + self.factor_seconds(L.flops * s * s) + self.ENTRY * L.nnz_L * s
+                 + self.SOLVE_COLUMN * est.K * s * L.nnz_L + self.PHI_ENTRY * est.nnz_phi)
+        iteration = self.SPMV * nnz_H + self.SOLVE * L.nnz_L + 2 * self.PHI_APPLY * est.nnz_phi
+        return self.TWO_LEVEL_OVERHEAD * (setup + self.TWO_LEVEL_ITERATIONS * iteration)
+
 
 class AutoSolver(LinearSolver):
     """Direct factorization or Schwarz-preconditioned CG, chosen per graph on the first solve by
     :class:`CostModel` from CHOLMOD-style symbolic analyses of H and of the subdomain blocks."""
 
     def __init__(self, params: LinearSolverParams, offsets: np.ndarray, translation_mask: np.ndarray,
-                 schwarz: str = "gdsw"):
+                 schwarz: str = "rgdsw-linear"):
         self.params, self.offsets, self.translation_mask, self.schwarz_name = params, offsets, translation_mask, schwarz
         self.chosen: LinearSolver | None = None
         self.choice = ""
@@ -220,21 +240,41 @@ class AutoSolver(LinearSolver):
                            f"{self.model.CG_ITERATIONS} CG iterations' SpMVs alone")
             return self.chosen
         dec = cg._decompose(H)
-        S = sp.csc_matrix(dec.overlapping)
-        S.sort_indices()
-        sets = IndexSets(indices=S.indices.astype(np.int64), ptr=S.indptr.astype(np.int64), n=S.shape[0])
-        blocks = block_diagonal(vertex_pattern(H, self.offsets), sets)
-        local = pattern_cholesky_cost(blocks, np.diff(self.offsets)[sets.indices])
-        t_schwarz = self.model.schwarz(local, H.nnz)
+        M = create_preconditioner(self.schwarz_name, H.shape[0], dec, self.translation_mask,
+                                  interface_grouping=params.interface_grouping, coarse_modes=params.coarse_modes,
+                                  memory_limit=params.memory_limit)
+        M.setup(H)
+        fits, refusal = True, None
+        if hasattr(M, "extension"):  # two-level: its own estimate (coarse columns, Φ, fill)
+            est = estimate_two_level(M, H)
+            t_schwarz = self.model.two_level(est, H.nnz)
+            try:
+                M.memory = fit_memory(M, H, params.memory_limit, self.schwarz_name, est)
+                M.extension.block_columns = M.memory.block_columns
+            except InsufficientMemoryError as exc:
+                fits, refusal = False, exc
+        else:
+            S = sp.csc_matrix(dec.overlapping)
+            S.sort_indices()
+            sets = IndexSets(indices=S.indices.astype(np.int64), ptr=S.indptr.astype(np.int64), n=S.shape[0])
+            blocks = block_diagonal(vertex_pattern(H, self.offsets), sets)
+            local = pattern_cholesky_cost(blocks, np.diff(self.offsets)[sets.indices])
+            t_schwarz = self.model.schwarz(local, H.nnz)
         facts = (f"nnz(L) {direct.nnz_L:.3g} ({direct.fill:.1f}x nnz(H)), {direct.flops:.3g} flops: "
                  f"direct {t_direct:.3g} s vs {self.schwarz_name} {t_schwarz:.3g} s per solve (predicted)")
-        if direct_bytes > available:  # the factor would not fit: Schwarz (which checks its own peak)
+        if direct_bytes > available:  # the factor would not fit: Schwarz if it does
+            if not fits:
+                raise InsufficientMemoryError(f"neither fits: direct's factor needs ~{gib(direct_bytes)}; {refusal}")
             self.choice, self.chosen = self.schwarz_name, cg
             facts += f"; direct's factor needs ~{gib(direct_bytes)}, {gib(available)} available"
-        elif t_direct <= t_schwarz:
+        elif not fits or t_direct <= t_schwarz:
             self.choice, self.chosen = "direct", DirectSolver()
+            if not fits:
+                facts += f"; {self.schwarz_name} would not fit in {gib(available)}"
         else:
             self.choice, self.chosen = self.schwarz_name, cg
+        if self.chosen is cg:
+            cg.operator = M  # set up already (interface, extension plan, memory fit): reused
         self.reason = facts
         return self.chosen
 

@@ -32,6 +32,9 @@ class MemoryEstimate:
     K: int = 0
     block_columns: int | None = None
     limit: float = float("inf")
+    local: object = None  # CholeskyCost of the overlapping subdomain blocks (predicted)
+    nnz_phi: float = 0.0  # entries of Φ
+    interior_share: float = 0.0  # interior dofs / dofs of the overlapping blocks
 
     def persistent(self) -> float:
         return OVERHEAD * sum(self.parts.values())
@@ -65,7 +68,7 @@ def estimate_two_level(M, A) -> MemoryEstimate:
     K = int(K_sub.max()) if nc else 0
     nnz_A0 = min(float(nc) ** 2, float(np.sum(K_sub.astype(float) ** 2)))  # columns that share a subdomain couple
     dense_coarse = nc <= 4000 and nnz_A0 >= 0.1 * nc * nc  # as solvers.factorize decides
-    est = MemoryEstimate(K=K)
+    est = MemoryEstimate(K=K, local=local, nnz_phi=nnz_phi, interior_share=nI / max(n_block, 1))
     est.parts = {
         "subdomain factors": FACTOR_BYTES * local.nnz_L + MATRIX_BYTES * local.nnz_A,
         "interior factors": FACTOR_BYTES * local.nnz_L * nI / max(n_block, 1) + MATRIX_BYTES * A.nnz,
@@ -77,11 +80,11 @@ def estimate_two_level(M, A) -> MemoryEstimate:
     return est
 
 
-def fit_memory(M, A, limit=None, name: str = "Schwarz") -> MemoryEstimate:
-    """Estimate M's peak and make it fit ``limit`` (bytes; None: the memory available now):
-    extend in blocks of columns when the full right-hand side would not fit, and raise
-    :class:`InsufficientMemoryError` when even one column at a time would not."""
-    est = estimate_two_level(M, A)
+def fit_memory(M, A, limit=None, name: str = "Schwarz", est: MemoryEstimate | None = None) -> MemoryEstimate:
+    """Estimate M's peak (or take ``est``) and make it fit ``limit`` (bytes; None: the memory
+    available now): extend in blocks of columns when the full right-hand side would not fit, and
+    raise :class:`InsufficientMemoryError` when even one column at a time would not."""
+    est = est if est is not None else estimate_two_level(M, A)
     est.limit = available_memory(limit)
     if est.peak() <= est.limit:
         return est

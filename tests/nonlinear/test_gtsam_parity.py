@@ -131,7 +131,7 @@ def test_typed_params_and_records():
 
 def test_automatic_linear_solver_records_its_choice_and_reason(monkeypatch):
     """The default "auto" picks direct where the factor hardly fills (the model problem) and says why;
-    a cost model that favours Schwarz gives GDSW-preconditioned CG with the same answer."""
+    a cost model that favours Schwarz gives its Schwarz candidate (rgdsw-linear) with the same answer."""
     from gtsam_schwarz.nonlinear.linear_solver import CostModel
     prob = square_loops(8, 6, sigma=0.05, seed=2)
     auto = SchwarzOptimizer(prob.graph, prob.initial)
@@ -140,9 +140,10 @@ def test_automatic_linear_solver_records_its_choice_and_reason(monkeypatch):
     assert choice["requested"] == "auto" and choice["used"] == "direct"
     assert "nnz(L)" in choice["reason"] and "predicted" in choice["reason"]
     monkeypatch.setattr(CostModel, "SCHWARZ_OVERHEAD", 0.0)
+    monkeypatch.setattr(CostModel, "TWO_LEVEL_OVERHEAD", 0.0)
     schwarz = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(subdomains=4))
     schwarz.optimize()
-    assert schwarz.summary()["linear_solver"]["used"] == "gdsw" and schwarz.history[0]["coarse_size"] > 0
+    assert schwarz.summary()["linear_solver"]["used"] == "rgdsw-linear" and schwarz.history[0]["coarse_size"] > 0
     assert schwarz.error() == pytest.approx(auto.error(), rel=1e-8)
 
 

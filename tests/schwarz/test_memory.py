@@ -70,23 +70,30 @@ def test_optimizer_refuses_with_the_error(survey):
         gs.SchwarzOptimizer(prob.graph, prob.initial, params).optimize()
 
 
-def test_auto_does_not_take_direct_when_its_factor_does_not_fit(survey):
-    """Below direct's predicted factor memory, auto's choice is its Schwarz candidate (which then
-    checks its own peak before its heavy work)."""
+def test_auto_does_not_take_direct_when_its_factor_does_not_fit(survey, monkeypatch):
+    """Where direct's predicted factor exceeds the limit, auto takes its Schwarz candidate if that
+    fits, and refuses with one line naming both if neither does."""
     prob, H, dec, geometry, mask = survey
-    from gtsam_schwarz.nonlinear.linear_solver import AutoSolver
+    import gtsam_schwarz.nonlinear.linear_solver as ls
     from gtsam_schwarz.nonlinear.params import LinearSolverParams
-    from gtsam_schwarz.solvers import cholesky_cost
+    from gtsam_schwarz.solvers import CholeskyCost
     from gtsam_schwarz.solvers.memory import FACTOR_BYTES, MATRIX_BYTES
     km = KeyMap.from_graph(prob.graph, prob.initial)
-    direct = FACTOR_BYTES * cholesky_cost(H, km.offsets).nnz_L + MATRIX_BYTES * H.nnz
-    choices = {}
-    for limit in (2 * direct, 0.5 * direct):
-        auto = AutoSolver(LinearSolverParams(subdomains=16, memory_limit=limit), km.offsets, mask)
-        auto.choose(H)
-        choices[limit] = auto.choice
-    assert choices[2 * direct] == "direct"  # a small 2D graph: direct is predicted faster
-    assert choices[0.5 * direct] != "direct" and "available" in auto.reason
+    real = ls.cholesky_cost(H, km.offsets)
+    direct = FACTOR_BYTES * real.nnz_L + MATRIX_BYTES * H.nnz
+    auto = ls.AutoSolver(LinearSolverParams(subdomains=16, memory_limit=2 * direct), km.offsets, mask)
+    auto.choose(H)
+    assert auto.choice == "direct"  # a small 2D graph: direct is predicted faster and fits
+    with pytest.raises(InsufficientMemoryError, match="neither fits") as caught:
+        ls.AutoSolver(LinearSolverParams(subdomains=16, memory_limit=0.5 * direct), km.offsets, mask).choose(H)
+    assert "\n" not in str(caught.value)
+    # a factor 100x fuller (as on large 3D graphs): it no longer fits where Schwarz does
+    monkeypatch.setattr(ls, "cholesky_cost", lambda A, offsets: CholeskyCost(real.nnz_A, 100 * real.nnz_L,
+                                                                             real.flops, real.n_dofs))
+    auto = ls.AutoSolver(LinearSolverParams(subdomains=16, memory_limit=20 * direct), km.offsets, mask)
+    auto.choose(H)
+    assert auto.choice == "rgdsw-linear" and "available" in auto.reason
+    assert auto.chosen.operator is not None and auto.chosen.operator.memory is not None  # set up once, reused
 
 
 MEASURE = textwrap.dedent("""
