@@ -49,8 +49,7 @@ def project_to_so(M: np.ndarray) -> np.ndarray:
         a = M[:, 0, 0] + M[:, 1, 1]
         b = M[:, 1, 0] - M[:, 0, 1]
         r = np.hypot(a, b)
-        ok = r > 1e-300 * np.maximum(np.abs(M).max(axis=(1, 2)), 1.0)
-        if np.all(ok):
+        if np.all(r > 0):
             c, s = a / r, b / r
             return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
     U, _, Vt = np.linalg.svd(M)
@@ -531,12 +530,11 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
     system = _BlockSystem(n, 1 if scalar else d, i, j, anchors) if direct_path else None
     factors = {}
 
-    def direct(blocks, rhs, x_fixed, on=None):
-        on = on or system
-        A, b = on.matrix(blocks, rhs, x_fixed)
+    def direct(blocks, rhs, x_fixed):
+        A, b = system.matrix(blocks, rhs, x_fixed)
         if np.iscomplexobj(A.data):   # CSR of a Hermitian A is the CSC of conj(A): conjugate it back
             A = sp.csc_matrix((np.conj(A.data), A.indices, A.indptr), shape=A.shape)
-        key = (id(on), A.dtype.kind)
+        key = (id(system), A.dtype.kind)   # one factorization per pattern and number type
         if key in factors:
             factors[key].refactor(A)
         else:
@@ -650,26 +648,26 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
     c = np.einsum("kab,kb->ka", rotations[i], t_meas)
     isotropic = scalar and bool(np.all(W_loc[:, 0, 1] == 0) and np.all(W_loc[:, 1, 0] == 0)
                                 and np.all(W_loc[:, 0, 0] == W_loc[:, 1, 1]))
-    if not isotropic:
-        Rw = rotations[i] @ R_meas
-        W = Rw @ W_loc @ np.swapaxes(Rw, 1, 2)
     if isotropic:  # W = R (wI) Rᵀ = wI: x and y decouple, one scalar Laplacian, two right-hand sides
         w = W_loc[:, 0, 0]
         wc = w[:, None] * c
         b = np.stack([np.bincount(j, wc[:, a], minlength=n) - np.bincount(i, wc[:, a], minlength=n)
                       for a in range(d)], -1)
         P, infos = direct((w, w, -w, -w), b, p_fix), []
-    elif system is not None:  # S = I: the blocks are ±W
-        if scalar:
-            system = _BlockSystem(n, d, i, j, anchors)
-        Wc = np.einsum("kab,kb->ka", W, c)
-        b = np.stack([np.bincount(j, Wc[:, a], minlength=n) - np.bincount(i, Wc[:, a], minlength=n)
-                      for a in range(d)], -1)
-        P, infos = direct((W, W, -W, -W), b.reshape(n * d, 1), p_fix.reshape(-1, 1)), []
     else:
-        S = np.broadcast_to(np.eye(d), (m, d, d))
-        A, b = _normal_equations(n, d, i, j, S, W, c)
-        P, infos = solve(red_d, A, b, p_fix.reshape(-1), S, W)
+        Rw = rotations[i] @ R_meas
+        W = Rw @ W_loc @ np.swapaxes(Rw, 1, 2)
+        if system is not None:  # S = I: the blocks are ±W
+            if scalar:   # correlated x, y: the 2×2-block pattern
+                system = _BlockSystem(n, d, i, j, anchors)
+            Wc = np.einsum("kab,kb->ka", W, c)
+            b = np.stack([np.bincount(j, Wc[:, a], minlength=n) - np.bincount(i, Wc[:, a], minlength=n)
+                          for a in range(d)], -1)
+            P, infos = direct((W, W, -W, -W), b.reshape(n * d, 1), p_fix.reshape(-1, 1)), []
+        else:
+            S = np.broadcast_to(np.eye(d), (m, d, d))
+            A, b = _normal_equations(n, d, i, j, S, W, c)
+            P, infos = solve(red_d, A, b, p_fix.reshape(-1), S, W)
     positions = P.reshape(n, d)
     t3 = time.perf_counter()
     info["translation_iterations"] = [c_.iterations for c_ in infos]
