@@ -10,8 +10,8 @@ The error, ‖g‖, the step's norms and the model's predicted decrease are sums
 (allgathered and summed in rank order, so every rank takes the same decisions).
 
 Still on every rank (see docs/distributed.md): the file, the whole graph's factor arrays (from
-which the rank's slice is cut), the decomposition and the initialization (chordal, and the initial
-error). Graphs with factors or variables the native kernels do not cover, or with Pose2 and Pose3
+which the rank's slice is cut), the initial error and the decomposition. The chordal initialization
+runs on rank 0 alone and is broadcast. Graphs with factors or variables the native kernels do not cover, or with Pose2 and Pose3
 mixed, fall back to the replicated linearization (every rank linearizes all, rows gathered).
 """
 
@@ -239,14 +239,14 @@ class DistributedOptimizer(SchwarzOptimizer):
 
     def __init__(self, graph, initial, params=None, comm=None, local_solver: str = "auto",
                  coarse_matrix: str = "harmonic", options: dict | None = None, linearizer=None):
-        t0 = time.perf_counter()
-        super().__init__(graph, initial, params, linearizer=linearizer)
-        self.init_seconds = time.perf_counter() - t0  # the whole graph's linearizer, initial error, chordal start
-        self.setup_seconds = 0.0
         PETSc = petsc()
         self.comm = comm if comm is not None else PETSc.COMM_WORLD
         self.mpi = self.comm.tompi4py()
         self.rank = self.comm.getRank()
+        t0 = time.perf_counter()
+        super().__init__(graph, initial, params, linearizer=linearizer)
+        self.init_seconds = time.perf_counter() - t0  # the whole graph's linearizer, initial error, chordal start
+        self.setup_seconds = 0.0
         full = self.linearizer
         self.linear_solver = PetscSchwarzSolver(self.nonlinear_params.linear_solver, full.offsets,
                                                 full.translation_mask(), comm=self.comm, local_solver=local_solver,
@@ -266,6 +266,24 @@ class DistributedOptimizer(SchwarzOptimizer):
             self._error = self._sum(self.part.error(self._state))[0]
             self.setup_seconds = time.perf_counter() - t0
         self._geometry_cache = None
+
+    def _initialize(self, method: str) -> dict:
+        """The global initialization on rank 0 only, its poses broadcast (the other ranks sleep
+        meanwhile instead of repeating it); every rank where the graph cannot be split."""
+        if self.mpi.Get_size() == 1 or method == "file" or replicated_reason(self.linearizer):
+            return super()._initialize(method)
+        payload = None
+        if self.rank == 0:
+            record = super()._initialize(method)
+            st = self._state
+            payload = (record, NativeState(pose2=st.pose2, R3=st.R3, t3=st.t3), self._error)
+        request = self.mpi.Ibarrier()
+        while not request.Test():  # a blocking broadcast would spin a core for the whole start
+            time.sleep(0.005)
+        record, state, error = self.mpi.bcast(payload, root=0)
+        if self.rank:
+            self._state, self._error = state, error
+        return record
 
     # -- reductions (summed in rank order: the same bits on every rank) -----------------------------
     def _sum(self, *values: float) -> np.ndarray:
