@@ -533,7 +533,7 @@ class NativeLinearizer:
         """The source-array layout and the gather index that fills H's CSR data from it."""
         P = self.pattern
         size = 0
-        puts = []   # (block rows, block cols, source index of each block entry)
+        puts = []   # (block rows, block cols, base, coef): entry (a, b) of block t reads source base[t] + coef[a, b]
         for K in (self._k2, self._k3):
             if K is None:
                 continue
@@ -549,7 +549,7 @@ class NativeLinearizer:
             K.cidx = np.concatenate(cidx) if cidx else np.zeros(0, np.int64)
             K.dseg = size
             size += nsym * K.n
-            puts.append((K.gvar, K.gvar, K.dseg + symk[None] * K.n + np.arange(K.n)[:, None, None]))
+            puts.append((K.gvar, K.gvar, K.dseg + np.arange(K.n), symk * K.n))
             if K.between is None:
                 continue
             F = K.between
@@ -563,14 +563,14 @@ class NativeLinearizer:
             b = np.arange(d)[None, :]
             if len(upk) == m:  # every pair once: blocks straight from the per-factor arrays
                 K.pairs = None
-                f = np.arange(m)[:, None, None]
+                f = np.arange(m)
                 if d == 3:   # SoA (9, m)
-                    idx_ab, idx_ba = (a * 3 + b)[None] * m + f, (b * 3 + a)[None] * m + f
+                    base, ab, ba = K.hseg + f, (a * 3 + b) * m, (b * 3 + a) * m
                 else:        # AoS (m, 6, 6)
-                    idx_ab, idx_ba = f * 36 + (a * 6 + b)[None], f * 36 + (b * 6 + a)[None]
+                    base, ab, ba = K.hseg + f * 36, a * 6 + b, b * 6 + a
                 K.hsize = d * d * m
-                puts.append((gi, gj, K.hseg + idx_ab))
-                puts.append((gj, gi, K.hseg + idx_ba))
+                puts.append((gi, gj, base, ab))
+                puts.append((gj, gi, base, ba))
             else:              # duplicate pairs: summed per (lo, hi) pair into (d², n pairs)
                 npairs = len(upk)
                 K.pairs = (pid, gi > gj, npairs)
@@ -578,9 +578,9 @@ class NativeLinearizer:
                 first = np.zeros(npairs, dtype=np.int64)
                 first[pid[::-1]] = np.arange(m - 1, -1, -1)   # first factor of each pair
                 plo, phi = lo[first], hi[first]
-                p = np.arange(npairs)[:, None, None]
-                puts.append((plo, phi, K.hseg + (a * d + b)[None] * npairs + p))
-                puts.append((phi, plo, K.hseg + (b * d + a)[None] * npairs + p))
+                base = K.hseg + np.arange(npairs)
+                puts.append((plo, phi, base, (a * d + b) * npairs))
+                puts.append((phi, plo, base, (b * d + a) * npairs))
             size += K.hsize
         self._zero = size          # S[size] = 0: entries only GTSAM-linearized factors fill
         self._src_size = size + 1

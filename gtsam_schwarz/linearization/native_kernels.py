@@ -863,6 +863,9 @@ def in_sorted(a: np.ndarray, sorted_b: np.ndarray) -> np.ndarray:
     return sorted_b[pos] == a
 
 
+_CHUNK = 1 << 16   # blocks per chunk of the plan's writes (temporaries of ~5 MB with 3×3 blocks)
+
+
 class BlockPattern:
     """CSR pattern (sorted indices) holding every entry of every block (u, v) of coupled variables.
 
@@ -958,24 +961,27 @@ class BlockPattern:
 
     def source_index(self, assignments, fill: int) -> np.ndarray:
         """Gather index of the CSR data: entry (a, b) of block (rows[t], cols[t]) takes source
-        val[t, a, b] for every (rows, cols, val) in ``assignments`` (blocks at most once), others ``fill``."""
+        base[t] + coef[a, b] for every (rows, cols, base, coef) in ``assignments`` (blocks at most once),
+        others ``fill``. Written a chunk of blocks at a time: no (t, d, d) temporaries."""
         if self.uniform:   # entry (a, b) of block k in row v: bptr[v]·(d² − d) + k·d + a·rowlen[v]·d + b
             d = self.d
-            a = np.arange(d)
-            blocks = [(self.block_index(rows, cols), val) for rows, cols, val in assignments]
-            covered = sum(len(k) for k, _ in blocks) == len(self.block_keys)   # each block at most once
+            blocks = [(self.block_index(rows, cols), base, coef) for rows, cols, base, coef in assignments]
+            covered = sum(len(k) for k, _, _ in blocks) == len(self.block_keys)   # each block at most once
             src = np.empty(self.nnz, dtype=np.int64) if covered else np.full(self.nnz, fill, dtype=np.int64)
-            for k, val in blocks:
-                v = self.block_rows[k]
-                row = (self._bptr[v] * (d * d - d) + k * d)[:, None] + (self._rowlen[v] * d)[:, None] * a   # (t, d)
-                src[row[:, :, None] + a] = val
+            a = np.arange(d)
+            for k, base, coef in blocks:
+                for lo in range(0, len(k), _CHUNK):   # chunks of blocks: small temporaries, local writes
+                    kc = k[lo:lo + _CHUNK]
+                    v = self.block_rows[kc]
+                    row = (self._bptr[v] * (d * d - d) + kc * d)[:, None] + (self._rowlen[v] * d)[:, None] * a
+                    src[row[:, :, None] + a] = np.asarray(base[lo:lo + _CHUNK])[:, None, None] + coef
             return src
         src = np.full(self.nnz, fill, dtype=np.int64)
-        for rows, cols, val in assignments:
+        for rows, cols, base, coef in assignments:
             k = self.block_index(rows, cols)
-            dr, dc = np.shape(val)[-2:]
+            dr, dc = np.shape(coef)
             pos = self._positions(k, dr, dc)
-            src[pos.ravel()] = np.broadcast_to(val, pos.shape).ravel()
+            src[pos.ravel()] = (np.asarray(base)[:, None, None] + coef[None]).ravel()
         return src
 
     def entry_positions(self, r: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -997,6 +1003,10 @@ class BlockPattern:
 
     def diagonal_positions(self) -> np.ndarray:
         """Positions of the diagonal entries H[r, r] in the CSR data."""
+        if self.uniform:   # entry (a, a) of every diagonal block, by the layout arithmetic
+            d, a = self.d, np.arange(self.d)
+            k = self._diag_blocks
+            return ((self._bptr[:-1] * (d * d - d) + k * d)[:, None] + (self._rowlen * d + 1)[:, None] * a).ravel()
         rows_of = np.repeat(np.arange(self.n, dtype=self.index_dtype), np.diff(self._indptr64))
         return np.flatnonzero(rows_of == self.indices)
 
