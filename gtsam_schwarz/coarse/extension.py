@@ -51,111 +51,152 @@ class CoarseBasis:
         return sp.csr_matrix(self.local[inverse])
 
 
+def column_groups(K_sub: np.ndarray, weight: np.ndarray, max_groups: int = 3) -> np.ndarray:
+    """Group of every subdomain for the extension's solves: subdomains with K_i columns solved
+    together at their group's largest K_i, the thresholds chosen to minimize Σ_g |I_g|·K_g (at
+    most ``max_groups``; one factorization per group, their sum the same as one)."""
+    K_sub = np.asarray(K_sub)
+    u = np.unique(K_sub)
+    if len(u) <= 1 or max_groups <= 1:
+        return np.zeros(len(K_sub), dtype=np.int64)
+    W = np.cumsum(np.bincount(np.searchsorted(u, K_sub), weights=weight, minlength=len(u)))  # weight with K ≤ u[j]
+    a, b = np.meshgrid(np.arange(len(u)), np.arange(len(u)), indexing="ij")
+    cost = W[a] * u[a] + (W[b] - W[a]) * u[b] + (W[-1] - W[b]) * u[-1]
+    if max_groups == 2:
+        cost = np.where(a == b, cost, np.inf)
+    cost = np.where(a <= b, cost, np.inf)
+    i, j = np.unravel_index(int(np.argmin(cost)), cost.shape)
+    return (K_sub > u[i]).astype(np.int64) + (K_sub > u[j]).astype(np.int64)
+
+
+class _Group:
+    """The interior dofs of some subdomains, their A_II and A_IΓ gathers and A_II's factorization."""
+
+    def __init__(self, interior: np.ndarray, sub: np.ndarray, gamma: np.ndarray):
+        self.interior, self.sub = interior, sub
+        self.A_II = Gather(lambda M: M[interior][:, interior])
+        self.A_IG = Gather(lambda M: M[interior][:, gamma])
+        self.factor = None
+
+    def refactor(self, A):
+        pattern = self.A_II.pattern
+        A_II = self.A_II(A)
+        if isinstance(self.factor, SparseCholesky) and self.A_II.pattern is pattern:
+            self.factor.refactor(A_II)  # same pattern: numbers only
+        else:
+            self.factor = factorize(A_II, "the interior matrix A_II")
+
+
 class HarmonicExtension:
     """Φ = [Φ_Γ; −A_II⁻¹ A_IΓ Φ_Γ] and A_0 = Φᵀ A Φ for one decomposition and interface.
 
     Interior and interface dofs, the patterns of A_II, A_IΓ and A_Γ·, the symbolic factorization
     of A_II and the pattern of Φ are computed once and reused for every new matrix with the same
     pattern. The right-hand sides are compressed: subdomain i only sees the K_i coarse columns whose
-    subdomain set contains i, so all subdomains share K = max K_i columns of the solve with A_II,
-    done in blocks of at most ``block_columns`` columns (None: all at once) to bound its memory.
+    subdomain set contains i. Subdomains are solved in up to ``max_groups`` groups of similar K_i
+    (:func:`column_groups`), each group one factorization of its block-diagonal A_II and one solve
+    with its largest K_i columns, in blocks of at most ``block_columns`` columns (None: all at once)
+    to bound the memory.
     """
 
-    def __init__(self, decomposition: Decomposition, interface: Interface, block_columns: int | None = None):
+    def __init__(self, decomposition: Decomposition, interface: Interface, block_columns: int | None = None,
+                 max_groups: int = 3):
         offsets = decomposition.structure.offsets
         self.n = decomposition.structure.n_dofs
         owner_dof = np.repeat(interface.interior_subdomain, np.diff(offsets))  # −1 on Γ
         self.interior = np.flatnonzero(owner_dof >= 0)
         self.gamma = np.flatnonzero(owner_dof < 0)
         self.sub = owner_dof[self.interior]
-        self.order = np.r_[self.interior, self.gamma]  # rows of Φ's local storage
-        self.block_columns = block_columns
-        I, G, order = self.interior, self.gamma, self.order
-        self._A_II = Gather(lambda M: M[I][:, I])
-        self._A_IG = Gather(lambda M: M[I][:, G])
-        self._A_G = Gather(lambda M: M[G][:, order])
-        self._factor = None
+        self.block_columns, self.max_groups = block_columns, max_groups
+        self.groups: list[_Group] = []
+        self.order = None  # rows of Φ's local storage: the groups' interior dofs, then Γ
+        self._A_G = None
         self._cached = None  # (signature of the interface values, plan)
 
-    def _refactor(self, A):
-        pattern = self._A_II.pattern
-        A_II = self._A_II(A)
-        if isinstance(self._factor, SparseCholesky) and self._A_II.pattern is pattern:
-            self._factor.refactor(A_II)  # same pattern: numbers only
-        else:
-            self._factor = factorize(A_II, "the interior matrix A_II")
-
-    def _plan(self, A_IG: sp.csr_matrix, gamma_rows, gamma_cols, col_subdomains) -> dict:
-        """Symbolic part of one extension: which products of A_IΓ and Φ_Γ entries add up to which
-        entry of the compressed right-hand side, and the pattern of Φ's local rows."""
-        nc, nI = col_subdomains.shape[0], len(self.interior)
+    def _plan(self, A, gamma_rows, gamma_cols, col_subdomains) -> dict:
+        """Symbolic part of one extension: the groups, which products of A_IΓ and Φ_Γ entries add up
+        to which entry of each group's compressed right-hand side, and the pattern of Φ's local rows."""
+        nc = col_subdomains.shape[0]
         P = sp.csr_matrix(col_subdomains.T)  # subdomain × column
         P.sort_indices()
         counts = np.diff(P.indptr)
-        K = int(counts.max())
         pair_sub = np.repeat(np.arange(P.shape[0]), counts)
         pair_key = pair_sub * np.int64(nc) + P.indices  # sorted
         local_k = np.arange(len(P.indices)) - P.indptr[pair_sub]
+        idx = np.int32 if max(nc, self.n) < 2**31 - 1 else np.int64
+        table = np.zeros((P.shape[0], max(int(counts.max()), 1)), dtype=idx)
+        table[pair_sub, local_k] = P.indices
+        group_of_sub = column_groups(counts, np.bincount(self.sub, minlength=P.shape[0]), self.max_groups)
         # Φ_Γ triplets grouped by interface dof; every A_IΓ entry (i, g) meets each triplet of row g
         gpos = np.searchsorted(self.gamma, gamma_rows)
         by_g = np.argsort(gpos, kind="stable")
         g_ptr = np.searchsorted(gpos[by_g], np.arange(len(self.gamma) + 1))
-        C = A_IG.tocoo()
-        deg = g_ptr[C.col + 1] - g_ptr[C.col]
-        term_a = np.repeat(np.arange(C.nnz), deg)
-        first = np.repeat(g_ptr[C.col] - np.cumsum(deg) + deg, deg)
-        term_phi = by_g[first + np.arange(len(term_a))]
-        rows = C.row[term_a]
-        key = self.sub[rows] * np.int64(nc) + gamma_cols[term_phi]
-        at = np.minimum(np.searchsorted(pair_key, key), len(pair_key) - 1)
-        if np.any(pair_key[at] != key):
-            raise AssertionError("interface coupling outside its subdomain: decomposition is inconsistent")
-        # right-hand-side terms sorted by local column, so a block of columns is a contiguous range
-        k_of_term = local_k[at]
-        by_k = np.argsort(k_of_term, kind="stable")
-        term_k = k_of_term[by_k]
-        # Φ_I: row r holds the K_i columns of its subdomain i (sorted), values X[r, :K_i]
-        k_row = counts[self.sub]
-        idx = np.int32 if max(nc, self.n) < 2**31 - 1 else np.int64
-        table = np.zeros((P.shape[0], K), dtype=idx)
-        table[pair_sub, local_k] = P.indices
-        prefix = np.arange(K)[None, :] < k_row[:, None]
-        indices_I = table[self.sub][prefix]
-        del table, prefix
+        self.groups, plans, indices, k_rows = [], [], [], []
+        for g in np.unique(group_of_sub[self.sub]):  # at most max_groups
+            rows_g = np.flatnonzero(group_of_sub[self.sub] == g)
+            group = _Group(self.interior[rows_g], self.sub[rows_g], self.gamma)
+            C = group.A_IG(A).tocoo()
+            deg = g_ptr[C.col + 1] - g_ptr[C.col]
+            term_a = np.repeat(np.arange(C.nnz), deg)
+            first = np.repeat(g_ptr[C.col] - np.cumsum(deg) + deg, deg)
+            term_phi = by_g[first + np.arange(len(term_a))]
+            rows = C.row[term_a]
+            key = group.sub[rows] * np.int64(nc) + gamma_cols[term_phi]
+            at = np.minimum(np.searchsorted(pair_key, key), len(pair_key) - 1)
+            if np.any(pair_key[at] != key):
+                raise AssertionError("interface coupling outside its subdomain: decomposition is inconsistent")
+            k_of_term = local_k[at]  # sorted by local column: a block of columns is a contiguous range
+            by_k = np.argsort(k_of_term, kind="stable")
+            k_row = counts[group.sub]
+            K, nI = int(k_row.max()), len(rows_g)
+            prefix = np.arange(K)[None, :] < k_row[:, None]
+            indices.append(table[group.sub, :K][prefix])  # Φ_I: row r holds its subdomain's K_i columns
+            k_rows.append(k_row)
+            plans.append({"K": K, "nI": nI, "term_a": term_a[by_k], "term_phi": term_phi[by_k],
+                          "target": k_of_term[by_k] * np.int64(nI) + rows[by_k],  # column-major blocks
+                          "term_k_ptr": np.searchsorted(k_of_term[by_k], np.arange(K + 1)), "k_row": k_row})
+            self.groups.append(group)
         g_order = np.lexsort((gamma_cols, gpos))
         ptr_G = np.searchsorted(gpos[g_order], np.arange(len(self.gamma) + 1))
-        indptr = np.r_[0, np.cumsum(k_row), len(indices_I) + ptr_G[1:]].astype(np.int64)
-        indices = np.r_[indices_I, gamma_cols[g_order].astype(idx)]
+        nnz_I = sum(len(i) for i in indices)
+        indptr = np.r_[0, np.cumsum(np.concatenate(k_rows)), nnz_I + ptr_G[1:]].astype(np.int64)
+        offset = 0
+        for plan, ind in zip(plans, indices):
+            plan["offset"], plan["row_start"] = offset, np.r_[0, np.cumsum(plan["k_row"])]
+            offset += len(ind)
+        self.order = np.r_[np.concatenate([grp.interior for grp in self.groups]), self.gamma]
+        order = self.order
+        G = self.gamma
+        self._A_G = Gather(lambda M: M[G][:, order])
+        indices = np.r_[np.concatenate(indices), gamma_cols[g_order].astype(idx)]
         if indptr[-1] < 2**31 - 1:
             indptr = indptr.astype(np.int32)
-        return {"K": K, "nI": nI, "term_a": term_a[by_k], "term_phi": term_phi[by_k],
-                "target": term_k * np.int64(nI) + rows[by_k],  # column-major: F-ordered blocks
-                "term_k_ptr": np.searchsorted(term_k, np.arange(K + 1)), "k_row": k_row,
-                "row_start": indptr[:nI + 1].astype(np.int64), "nnz_I": len(indices_I),
-                "g_order": g_order, "gpos": gpos, "indices": indices, "indptr": indptr}
+        return {"groups": plans, "nI": len(self.interior), "nnz_I": nnz_I, "g_order": g_order,
+                "indices": indices, "indptr": indptr}
 
     def columns_per_block(self, K: int) -> int:
         return K if self.block_columns is None else max(1, min(K, int(self.block_columns)))
 
-    def _extend(self, A_IG: sp.csr_matrix, gamma_vals: np.ndarray, plan: dict, data: np.ndarray) -> None:
-        """Φ_I = −A_II⁻¹ A_IΓ Φ_Γ into data[:nnz_I] (row-major Φ_I), column blocks of the compressed
-        right-hand side at a time."""
+    def _extend(self, group: _Group, A_IG: sp.csr_matrix, gamma_vals: np.ndarray, plan: dict, data: np.ndarray) -> None:
+        """One group's Φ_I = −A_II⁻¹ A_IΓ Φ_Γ into data (row-major), a block of columns of the
+        compressed right-hand side at a time."""
         K, nI = plan["K"], plan["nI"]
         weights = -A_IG.data[plan["term_a"]] * gamma_vals[plan["term_phi"]]
-        k_ptr, k_row, start = plan["term_k_ptr"], plan["k_row"], plan["row_start"]
+        k_ptr, k_row = plan["term_k_ptr"], plan["k_row"]
+        out = data[plan["offset"]:plan["offset"] + plan["row_start"][-1]]
         width = self.columns_per_block(K)
         for k0 in range(0, K, width):  # a loop over blocks of coarse columns (one when memory allows)
             k1 = min(K, k0 + width)
             lo, hi = k_ptr[k0], k_ptr[k1]
             B = np.bincount(plan["target"][lo:hi] - k0 * nI, weights=weights[lo:hi],
                             minlength=nI * (k1 - k0)).reshape(k1 - k0, nI).T  # F-ordered nI × (k1 − k0)
-            X = self._factor(B)
+            X = group.factor(B)
             del B
             sel = np.arange(k0, k1)[None, :] < k_row[:, None]
             if k0 == 0 and k1 == K:
-                data[:plan["nnz_I"]] = X[sel]  # row-major prefix of every row: Φ_I's CSR order
+                out[:] = X[sel]  # row-major prefix of every row: Φ_I's CSR order
             else:
-                data[(start[:-1, None] + np.arange(k0, k1)[None, :])[sel]] = X[sel]
+                out[(plan["row_start"][:-1, None] + np.arange(k0, k1)[None, :])[sel]] = X[sel]
             del X, sel
 
     def __call__(self, A: sp.spmatrix, gamma_rows: np.ndarray, gamma_cols: np.ndarray,
@@ -166,20 +207,21 @@ class HarmonicExtension:
         if nc == 0 or len(self.interior) == 0:
             Phi_G = sp.csr_matrix((gamma_vals, (gamma_rows, gamma_cols)), shape=(n, nc))
             return CoarseBasis(Phi_G, np.arange(n)), (Phi_G.T @ A @ Phi_G).tocsr()
-        pattern = self._A_IG.pattern
-        A_IG = self._A_IG(A)
+        if not A.has_sorted_indices:
+            A = A.sorted_indices()
         col_subdomains = sp.csr_matrix(col_subdomains)
         signature = (gamma_rows, gamma_cols, col_subdomains.indptr, col_subdomains.indices)
         cached = self._cached
-        if (cached is None or self._A_IG.pattern is not pattern
+        if (cached is None or not self.groups[0].A_IG.pattern.matches(A)
                 or not all(np.array_equal(a, b) for a, b in zip(cached[0], signature))):
             self._cached = None
             self._cached = cached = (tuple(np.array(a, copy=True) for a in signature),
-                                     self._plan(A_IG, gamma_rows, gamma_cols, col_subdomains))
+                                     self._plan(A, gamma_rows, gamma_cols, col_subdomains))
         plan = cached[1]
-        self._refactor(A)
         data = np.empty(len(plan["indices"]))
-        self._extend(A_IG, gamma_vals, plan, data)
+        for group, gplan in zip(self.groups, plan["groups"]):
+            group.refactor(A)
+            self._extend(group, group.A_IG(A), gamma_vals, gplan, data)
         data[plan["nnz_I"]:] = gamma_vals[plan["g_order"]]
         local = sp.csr_matrix((data, plan["indices"], plan["indptr"]), shape=(n, nc))
         # (AΦ)_I = A_II Φ_I + A_IΓ Φ_Γ = 0 for the harmonic extension, so Φᵀ A Φ = Φ_Γᵀ (AΦ)_Γ:
