@@ -194,8 +194,7 @@ class RankLinearizer:
         self._indptr, self._cols = H.indptr.astype(IT), cols.astype(IT)
 
     def linearize(self, state: NativeState) -> tuple[object, object, float]:
-        """Assemble Σ over the ranks of their factors' H and g at ``state``; returns (H, g, this
-        rank's error)."""
+        """H and g of all ranks' factors at ``state`` into PETSc; returns (H, g, this rank's error)."""
         PETSc = self.PETSc
         t0 = time.perf_counter()
         if self.local is not None:
@@ -231,11 +230,8 @@ class RankLinearizer:
 
 
 class DistributedOptimizer(SchwarzOptimizer):
-    """:class:`~gtsam_schwarz.nonlinear.SchwarzOptimizer` run by every rank of ``comm``, each
-    linearizing its own factors into PETSc (see the module docstring). ``optimize()`` returns the
-    gathered ``gtsam.Values`` on rank 0 and None on the others (``values()`` is collective).
-    ``distributed`` is False (``replicated`` says why) when the graph needs the replicated path:
-    then every rank linearizes everything and only the linear solves are distributed."""
+    """``SchwarzOptimizer`` run by every rank of ``comm``, each linearizing its own factors into PETSc;
+    ``optimize()`` returns the Values on rank 0, None elsewhere (``replicated``: why a graph cannot be split)."""
 
     def __init__(self, graph, initial, params=None, comm=None, local_solver: str = "auto",
                  coarse_matrix: str = "harmonic", options: dict | None = None, linearizer=None):
@@ -268,8 +264,7 @@ class DistributedOptimizer(SchwarzOptimizer):
         self._geometry_cache = None
 
     def _initialize(self, method: str) -> dict:
-        """The global initialization on rank 0 only, its poses broadcast (the other ranks sleep
-        meanwhile instead of repeating it); every rank where the graph cannot be split."""
+        """The global initialization on rank 0 alone, its poses broadcast (the others sleep meanwhile)."""
         if self.mpi.Get_size() == 1 or method == "file" or replicated_reason(self.linearizer):
             return super()._initialize(method)
         payload = None
@@ -327,8 +322,7 @@ class DistributedOptimizer(SchwarzOptimizer):
 
     # -- the loop's pieces, distributed -------------------------------------------------------------
     def _anchors(self, H) -> np.ndarray:
-        """gauge.free_components on the distributed H: components whose rigid translations have a
-        Rayleigh quotient below FREE_TOL (sums over the ranks' rows)."""
+        """``gauge.free_components`` on the distributed H (zᵀHz and zᵀDz summed over the ranks' rows)."""
         full = self.linearizer
         geometry = self._geometry()
         offsets = full.offsets

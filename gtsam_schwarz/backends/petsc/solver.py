@@ -427,9 +427,8 @@ class PetscSchwarzSolver(PreconditionedCG):
         return self._layout(sp.csr_matrix(structure_matrix))
 
     def solve_distributed(self, H, damping: np.ndarray | None, b, tol, geometry):
-        """(H + diag(damping)) x = b with H and b already distributed (PETSc Mat and Vec in the layout's
-        numbering, this rank's rows; ``damping``: this rank's rows or None). ``result.x`` is the
-        solver's own distributed Vec (valid until the next solve); nothing is gathered."""
+        """(H + diag(damping)) x = b, H, b and damping already distributed (layout numbering); ``result.x``
+        is the solver's own distributed Vec, valid until the next solve."""
         PETSc = self.PETSc
         t0 = time.perf_counter()
         lay = self.layout
@@ -450,8 +449,7 @@ class PetscSchwarzSolver(PreconditionedCG):
         return self._solve_assembled(created, tol, geometry, self._local_rows, float(b.norm()), t0)
 
     def _local_rows(self) -> sp.csr_matrix:
-        """This rank's rows of A in the original numbering, as an n × n CSR (other rows empty): what
-        the coarse basis reads (the interiors of the rank's subdomains)."""
+        """This rank's rows of A in the original numbering as an n × n CSR (the coarse basis reads them)."""
         lay = self.layout
         lo, hi = lay.rows(self.rank)
         indptr, indices, data = self.A.getValuesCSR()
@@ -464,8 +462,8 @@ class PetscSchwarzSolver(PreconditionedCG):
         return sp.csr_matrix((data[perm], cols, ptr), shape=(lay.n, lay.n))
 
     def _solve_assembled(self, created: bool, tol: float, geometry, H_rows, bnorm: float, t0: float) -> SolveResult:
-        """The KSP solve of the assembled ``self.A`` x = ``self._b`` with the lagging policy;
-        ``H_rows()``: H with (at least) this rank's rows in the original numbering, for the coarse basis."""
+        """KSP solve of ``self.A`` x = ``self._b`` with the lagging policy; ``H_rows()``: this rank's rows
+        of H, original numbering (for the coarse basis)."""
         p = self.params
         cap = None if created else self._lag_cap()
         lagged = cap is not None
