@@ -129,9 +129,9 @@ def checks():
 @needs_mpi
 def test_per_rank_linearization_equals_the_whole_graph(checks):
     """Each rank linearizes its own factors: the assembled H and g equal the whole graph's, and the
-    optimizer gives the serial poses and error (Pose2 with and without a prior, Pose3)."""
+    optimizer gives the serial poses and error (Pose2 with and without a prior, Pose3, GTSAM factors)."""
     cases = checks["distributed"]
-    assert [c["problem"] for c in cases] == ["square_loops", "no_prior", "lawnmower", "survey3d"]
+    assert [c["problem"] for c in cases] == ["square_loops", "no_prior", "lawnmower", "survey3d", "gtsam_factors"]
     for case in cases:
         assert case["distributed"], case
         assert sum(case["ranks_factors"]) == case["factors"] and min(case["ranks_factors"]) > 0, case
@@ -145,6 +145,9 @@ def test_per_rank_linearization_equals_the_whole_graph(checks):
         assert case["pose_difference"] < 1e-8, case
         assert case["values_on_rank"] == [True, False], case
     assert cases[1]["anchored"][0] == [0]  # the prior-free graph is anchored at its first pose
+    # factors the kernels leave to GTSAM are linearized by GTSAM on their first pose's rank, once
+    split = cases[4]["gtsam_factors"]
+    assert sum(split) == cases[4]["gtsam_factors_whole"] > 0 and min(split) > 0, cases[4]
 
 
 @needs_mpi
@@ -248,9 +251,16 @@ def test_replicated_reason_names_what_cannot_be_split():
     from gtsam_schwarz.linearization.gtsam_export import GtsamLinearizer
     from gtsam_schwarz.linearization.native import NativeLinearizer
 
+    import gtsam
+
     pb = gs.square_loops(LOOPS, POINTS)
     assert replicated_reason(NativeLinearizer(pb.graph, pb.initial)) == ""
     assert "not the native" in replicated_reason(GtsamLinearizer(pb.graph, pb.initial))
+    graph, values = gtsam.NonlinearFactorGraph(pb.graph), gtsam.Values(pb.initial)
+    landmark = gtsam.symbol("l", 0)
+    values.insert(landmark, gtsam.Point2(1.0, 2.0))
+    graph.add(gtsam.PriorFactorPoint2(landmark, gtsam.Point2(1.0, 2.0), gtsam.noiseModel.Isotropic.Sigma(2, 1.0)))
+    assert "not poses" in replicated_reason(NativeLinearizer(graph, values))
 
 
 def test_mpiexec_command_has_the_open_mpi_flags(monkeypatch):

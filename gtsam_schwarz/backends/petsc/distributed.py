@@ -2,7 +2,8 @@
 
 A factor belongs to the rank that owns its first variable (``layout.rank_layout``: vertices are
 owned by subdomain). Each rank builds a :class:`~gtsam_schwarz.linearization.native.NativeLinearizer`
-on its factors (``from_arrays`` on a slice of the whole graph's factor arrays), adds its H blocks into
+on its factors (``from_arrays`` on a slice of the whole graph's factor arrays; when some factors need
+GTSAM, a ``NativeLinearizer`` of the rank's sub-graph, which hands those to GTSAM), adds its H blocks into
 the PETSc MPIAIJ matrix (MatSetValues with ADD_VALUES; rows of other ranks go through PETSc's
 assembly) and its g into a PETSc Vec, and keeps the poses its factors touch plus the poses it owns.
 The step stays distributed: each rank scatters only the entries of its poses and retracts them.
@@ -11,8 +12,8 @@ The error, ‖g‖, the step's norms and the model's predicted decrease are sums
 
 Still on every rank (see docs/distributed.md): the file, the whole graph's factor arrays (from
 which the rank's slice is cut), the initial error and the decomposition. The chordal initialization
-runs on rank 0 alone and is broadcast. Graphs with factors or variables the native kernels do not cover, or with Pose2 and Pose3
-mixed, fall back to the replicated linearization (every rank linearizes all, rows gathered).
+runs on rank 0 alone and is broadcast. Graphs with variables that are not poses, or with Pose2 and
+Pose3 mixed, fall back to the replicated linearization (every rank linearizes all, rows gathered).
 """
 
 from __future__ import annotations
@@ -52,8 +53,8 @@ def replicated_reason(linearizer) -> str:
     """Why ``linearizer`` cannot be split by rank ("" when it can: a pure Pose2 or Pose3 native graph)."""
     if not isinstance(linearizer, NativeLinearizer):
         return f"{type(linearizer).__name__} is not the native linearizer"
-    if linearizer._others is not None and (linearizer._others.graph.size() or linearizer._others.var_keys):
-        return "the graph has factors or variables that GTSAM linearizes"
+    if linearizer._others is not None and linearizer._others.var_keys:
+        return "the graph has variables that are not poses"
     if (linearizer._k2 is None) == (linearizer._k3 is None):
         return "the graph mixes Pose2 and Pose3 (or has no poses)"
     return ""
@@ -79,7 +80,7 @@ def _slice(F, sel: np.ndarray, d: int):
 class RankLinearizer:
     """The factors of one rank: native linearization, assembly into PETSc, retraction of its poses."""
 
-    def __init__(self, full: NativeLinearizer, layout, rank: int, comm):
+    def __init__(self, full: NativeLinearizer, layout, rank: int, comm, graph=None, values=None):
         self.PETSc = PETSc = petsc()
         self.comm, self.rank, self.layout = comm, rank, layout
         K = full._k2 or full._k3
@@ -93,13 +94,35 @@ class RankLinearizer:
         self.n_factors = len(own_b) + len(own_p)
         parts = [B.i[own_b], B.j[own_b]] if B is not None else []
         parts += [P.j[own_p]] if P is not None else []
+        gtsam_factors = full._others is not None and full._others.graph.size() > 0
+        if gtsam_factors:  # factors the kernels do not cover: GTSAM linearizes them on the first key's rank
+            if graph is None or values is None:
+                raise ValueError("a graph with GTSAM-linearized factors needs the gtsam graph and values")
+            O = full._others
+            keys = [np.asarray(O.graph.at(k).keys(), dtype=np.uint64) for k in range(O.graph.size())]
+            first = np.searchsorted(full.keys, np.array([k[0] for k in keys], dtype=np.uint64))
+            own_o = np.flatnonzero(vrank[first] == rank)
+            parts += [np.searchsorted(full.keys, np.concatenate([keys[k] for k in own_o]))] if len(own_o) else []
+            ids = np.sort(np.concatenate([B.ids[own_b] if B is not None else np.zeros(0, np.int64),
+                                          P.ids[own_p] if P is not None else np.zeros(0, np.int64),
+                                          full._other_ids[own_o]]))
+            self.n_factors += len(own_o)
         touched = sorted_unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
         self.owned = np.flatnonzero(vrank == rank)  # the poses this rank reports (geometry, values)
         self.hold = sorted_unique(np.concatenate([touched, self.owned]))  # the poses this rank keeps and retracts
         self.sel = None if len(touched) == len(self.hold) else np.searchsorted(self.hold, touched)
         self.owned_at = np.searchsorted(self.hold, self.owned)
         self.local = None
-        if self.n_factors:
+        if self.n_factors and gtsam_factors:
+            import gtsam
+
+            sub = gtsam.NonlinearFactorGraph()
+            for idx in ids.tolist():  # setup only: one gtsam call per factor of the rank
+                sub.push_back(graph.at(idx))
+            self.local = NativeLinearizer(sub, values)
+            if not np.array_equal(self.local.keys, K.keys[touched]):
+                raise AssertionError("the rank's linearizer numbers its poses differently")
+        elif self.n_factors:
             kw = {}
             if len(own_b):
                 z, R, rob = _slice(B, own_b, d)
@@ -257,7 +280,7 @@ class DistributedOptimizer(SchwarzOptimizer):
             dec = self.linear_solver.decomposition
             structure = dec.structure if dec is not None else GraphStructure.from_matrix(pattern, full.offsets)
             self._components = connected_components(structure.adjacency(), directed=False)
-            self.part = RankLinearizer(full, layout, self.rank, self.comm)
+            self.part = RankLinearizer(full, layout, self.rank, self.comm, graph, initial)
             self._state = self.part.state(self._state)
             self._error = self._sum(self.part.error(self._state))[0]
             self.setup_seconds = time.perf_counter() - t0
