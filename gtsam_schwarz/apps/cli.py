@@ -1,4 +1,4 @@
-"""The ``gtsam-schwarz`` command line: solve, compare, synth, demo (commands.py), paper and bench (bench.py).
+"""The ``gtsam-schwarz`` command line: solve, compare, synth (commands.py), demo (demo.py), paper and bench (bench.py).
 
 Conventions: results on stdout (a table, or one JSON object with ``--json``), progress and errors on
 stderr; a usage error is one line and exit code 2; a closed stdout (``| head``) ends the command
@@ -14,6 +14,7 @@ import os
 import sys
 
 from .bench import add_bench
+from .demo import add_demo
 from ..io.jsonout import json_safe
 from .runtime import tune_allocator
 from .commands import UsageError, add_all, make_out_dir, nonnegative_int, positive_float
@@ -95,6 +96,7 @@ def build_parser() -> Parser:
                                 help="one of these; 'gtsam-schwarz COMMAND --help' shows its options")
     sub.required = True
     add_all(sub)
+    add_demo(sub)
     add_paper(sub)
     add_bench(sub)
     return parser

@@ -615,7 +615,5 @@ def make_out_dir(option: str, path: str) -> pathlib.Path:
 
 
 def add_all(sub) -> None:
-    from .demo import add_demo
-
-    for add in (add_solve, add_compare, add_synth, add_demo):
+    for add in (add_solve, add_compare, add_synth):
         add(sub)
