@@ -108,6 +108,7 @@ class HarmonicExtension:
         self.gamma = np.flatnonzero(owner_dof < 0)
         self.sub = owner_dof[self.interior]
         self.block_columns, self.max_groups = block_columns, max_groups
+        self.keep_factors = True  # False: each group's A_II factorization is dropped after its solve
         self.groups: list[_Group] = []
         self.order = None  # rows of Φ's local storage: the groups' interior dofs, then Γ
         self._A_G = None
@@ -222,6 +223,8 @@ class HarmonicExtension:
         for group, gplan in zip(self.groups, plan["groups"]):
             group.refactor(A)
             self._extend(group, group.A_IG(A), gamma_vals, gplan, data)
+            if not self.keep_factors:
+                group.factor = None  # the next refactor analyses anew
         data[plan["nnz_I"]:] = gamma_vals[plan["g_order"]]
         local = sp.csr_matrix((data, plan["indices"], plan["indptr"]), shape=(n, nc))
         # (AΦ)_I = A_II Φ_I + A_IΓ Φ_Γ = 0 for the harmonic extension, so Φᵀ A Φ = Φ_Γᵀ (AΦ)_Γ:

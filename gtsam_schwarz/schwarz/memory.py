@@ -20,7 +20,8 @@ from ..solvers import block_diagonal, pattern_cholesky_cost, vertex_pattern
 from ..solvers.memory import FACTOR_BYTES, MATRIX_BYTES, InsufficientMemoryError, available_memory, gib
 
 EXTENSION_BYTES = 20  # per entry of one column block: right-hand side, solution, its selected part, mask (measured 18)
-OVERHEAD = 1.25  # allocator slack and temporaries not counted above (fitted: docs/survey.md, memory)
+OVERHEAD = 1.4  # allocator slack and temporaries not counted above (measured/estimated 0.7-1.1: docs/survey.md, memory)
+LOW_MEMORY_SLACK = 1.2  # one factorization at a time saved less than counted: 2822 -> 2460 MiB measured (3D, 36 864 poses)
 
 
 @dataclass
@@ -36,12 +37,21 @@ class MemoryEstimate:
     nnz_phi: float = 0.0  # entries of Φ
     interior_share: float = 0.0  # interior dofs / dofs of the overlapping blocks
 
+    low_memory: bool = False  # factorizations not kept between the extension and the one-level level
+
     def persistent(self) -> float:
         return OVERHEAD * sum(self.parts.values())
 
-    def peak(self, block_columns: int | None = None) -> float:
+    def peak(self, block_columns: int | None = None, low_memory: bool | None = None) -> float:
+        """Bytes at the worst moment of an update. ``low_memory``: the interior factors live only
+        during the extension and the subdomain factors only after it, so only the larger phase counts."""
         width = self.K if block_columns is None else min(self.K, block_columns)
-        return self.persistent() + OVERHEAD * self.extension_column * width
+        extension = self.extension_column * width
+        if not (self.low_memory if low_memory is None else low_memory):
+            return OVERHEAD * (sum(self.parts.values()) + extension)
+        p = self.parts
+        shared = sum(v for k, v in p.items() if k not in ("subdomain factors", "interior factors"))
+        return LOW_MEMORY_SLACK * OVERHEAD * (shared + max(p["subdomain factors"], p["interior factors"] + extension))
 
     def describe(self) -> str:
         return ", ".join(f"{k} {gib(OVERHEAD * v)}" for k, v in self.parts.items())
@@ -70,11 +80,14 @@ def estimate_two_level(M, A) -> MemoryEstimate:
     dense_coarse = nc <= 4000 and nnz_A0 >= 0.1 * nc * nc  # as solvers.factorize decides
     est = MemoryEstimate(K=K, local=local, nnz_phi=nnz_phi, interior_share=nI / max(n_block, 1))
     est.parts = {
-        "subdomain factors": FACTOR_BYTES * local.nnz_L + MATRIX_BYTES * local.nnz_A,
-        "interior factors": FACTOR_BYTES * local.nnz_L * nI / max(n_block, 1) + MATRIX_BYTES * A.nnz,
+        "subdomain factors": FACTOR_BYTES * local.nnz_L,
+        "interior factors": FACTOR_BYTES * local.nnz_L * nI / max(n_block, 1),
+        # the gathered blocks (overlapping, A_II, A_IΓ, A_Γ·) with their source positions and the
+        # gathers' copies of A's pattern
+        "gathered matrices": MATRIX_BYTES * (local.nnz_A + A.nnz) + 16.0 * A.nnz,
         "coarse basis": 12.0 * nnz_phi,
-        "patterns": 16.0 * A.nnz,  # the gathers' copies of A's pattern and their source positions
-        "coarse matrix": 16.0 * nc * nc if dense_coarse else 48.0 * nnz_A0,
+        # A₀ and, while it is assembled, A_Γ·Φ (|Γ| × K at most)
+        "coarse matrix": (16.0 * nc * nc if dense_coarse else 48.0 * nnz_A0) + 12.0 * len(ext.gamma) * K,
     }
     est.extension_column = EXTENSION_BYTES * nI
     return est
@@ -86,20 +99,22 @@ def fit_memory(M, A, limit=None, name: str = "Schwarz", est: MemoryEstimate | No
     raise :class:`InsufficientMemoryError` when even one column at a time would not."""
     est = est if est is not None else estimate_two_level(M, A)
     est.limit = available_memory(limit)
-    if est.peak() <= est.limit:
-        return est
-    room = est.limit - est.persistent()
-    width = int(room // (OVERHEAD * est.extension_column)) if est.extension_column else 0
-    if width >= 1:
-        est.block_columns = min(width, est.K)
-        return est
+    for low in (False, True):  # keep the factorizations if possible; else one phase at a time
+        if est.peak(None, low) <= est.limit:
+            est.low_memory = low
+            return est
+        fixed = est.peak(0, low)
+        width = int((est.limit - fixed) // (OVERHEAD * est.extension_column)) if est.extension_column else 0
+        if width >= 1 and est.peak(width, low) <= est.limit:
+            est.block_columns, est.low_memory = min(width, est.K), low
+            return est
     parts = est.parts
     biggest = max(parts, key=parts.get)
     advice = {"subdomain factors": "smaller subdomains (subdomain_size) or more memory",
               "interior factors": "smaller subdomains (subdomain_size) or more memory",
-              "patterns": "preconditioner='direct' or more memory",
+              "gathered matrices": "preconditioner='direct', overlap=0 or more memory",
               "coarse basis": "larger subdomains (subdomain_size), a smaller coarse space (rgdsw-linear) or more memory",
               "coarse matrix": "larger subdomains (subdomain_size), a smaller coarse space (rgdsw-linear) or more memory"}[biggest]
     raise InsufficientMemoryError(
-        f"{name} needs about {gib(est.peak(1))} ({est.describe()}) but {gib(est.limit)} is available: "
+        f"{name} needs about {gib(est.peak(1, True))} ({est.describe()}) but {gib(est.limit)} is available: "
         f"use {advice}")

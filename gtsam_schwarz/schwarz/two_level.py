@@ -110,10 +110,16 @@ class TwoLevelSchwarz(SumOperator):
             self.setup(A)
         if self.memory is None:  # before the heavy work: estimate the peak, adapt or stop
             self.memory = fit_memory(self, A, self.memory_limit, self.kind)
-            self.extension.block_columns = self.memory.block_columns
-        self.one_level.update(A)
+        low = self.memory.low_memory
+        self.extension.block_columns = self.memory.block_columns
+        self.extension.keep_factors = not low
+        self.coarse_space = self.coarse = None  # the previous Φ is not needed while the new one is built
+        self.parts = [self.one_level]
+        if low:
+            self.one_level.solver.release()  # refactored (with a new analysis) after the extension
         self.coarse_space = gdsw_coarse_space(A, self.decomposition, self.interface, self.kind, geometry,
                                               self.rotation, self.translation_mask, self.extension)
+        self.one_level.update(A)
         self.coarse = CoarseCorrection(self.coarse_space)
         self.parts = [self.one_level, self.coarse]
         return self

@@ -72,6 +72,12 @@ class BlockDiagonalSolver:
             self._factor.refactor(B)
         return self
 
+    def release(self) -> None:
+        """Drop the factorization (to bound the memory); the next :meth:`update` factorizes anew,
+        symbolic analysis included."""
+        self._factor = None
+        self._dense = None
+
     def matvec(self, x: np.ndarray) -> np.ndarray:
         xl = x[self.sets.indices]
         if self._dense is not None:
