@@ -15,13 +15,14 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..coarse import coarse_columns
+from ..coarse.extension import column_groups
 from ..dd.index_sets import IndexSets
 from ..solvers import block_diagonal, pattern_cholesky_cost, vertex_pattern
 from ..solvers.memory import FACTOR_BYTES, MATRIX_BYTES, InsufficientMemoryError, available_memory, gib
 
 EXTENSION_BYTES = 20  # per entry of one column block: right-hand side, solution, its selected part, mask (measured 18)
 OVERHEAD = 1.4  # allocator slack and temporaries not counted above (measured/estimated 0.7-1.1: docs/survey.md, memory)
-LOW_MEMORY_SLACK = 1.2  # one factorization at a time saved less than counted: 2822 -> 2460 MiB measured (3D, 36 864 poses)
+LOW_MEMORY_SLACK = 1.0  # one factorization at a time, 3D 36 864 poses: 2171 MiB estimated, 2162 measured (2511 both kept)
 
 
 @dataclass
@@ -82,14 +83,20 @@ def estimate_two_level(M, A) -> MemoryEstimate:
     est.parts = {
         "subdomain factors": FACTOR_BYTES * local.nnz_L,
         "interior factors": FACTOR_BYTES * local.nnz_L * nI / max(n_block, 1),
-        # the gathered blocks (overlapping, A_II, A_IΓ, A_Γ·) with their source positions and the
-        # gathers' copies of A's pattern
-        "gathered matrices": MATRIX_BYTES * (local.nnz_A + A.nnz) + 16.0 * A.nnz,
+        # the gathered blocks (overlapping, A_II, A_IΓ, A_Γ·) with their source positions and one
+        # shared copy of A's pattern
+        "gathered matrices": MATRIX_BYTES * (local.nnz_A + A.nnz) + 4.0 * A.nnz,
         "coarse basis": 12.0 * nnz_phi,
         # A₀ and, while it is assembled, A_Γ·Φ (|Γ| × K at most)
         "coarse matrix": (16.0 * nc * nc if dense_coarse else 48.0 * nnz_A0) + 12.0 * len(ext.gamma) * K,
     }
-    est.extension_column = EXTENSION_BYTES * nI
+    # the extension solves group by group (coarse.extension.column_groups): its largest right-hand side
+    nI_sub = np.bincount(ext.sub, minlength=len(K_sub))
+    group = column_groups(K_sub, nI_sub, ext.max_groups) if nc else np.zeros(len(K_sub), np.int64)
+    K_group = np.zeros(int(group.max()) + 1 if len(group) else 1)
+    np.maximum.at(K_group, group, K_sub)
+    largest = float(np.max(np.bincount(group, weights=nI_sub) * K_group)) if len(group) else 0.0
+    est.extension_column = EXTENSION_BYTES * largest / max(K, 1)
     return est
 
 

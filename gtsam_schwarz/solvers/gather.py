@@ -19,6 +19,17 @@ class SparsityPattern:
                 and np.array_equal(A.indptr, self.indptr) and np.array_equal(A.indices, self.indices))
 
 
+_shared: list = [None]  # the last pattern built: the gathers of one matrix share one copy of it
+
+
+def _pattern_of(A: sp.csr_matrix) -> SparsityPattern:
+    """A's pattern, shared with the previous gather's when equal (one copy per matrix, not per gather)."""
+    last = _shared[0]
+    if last is None or not last.matches(A):
+        last = _shared[0] = SparsityPattern(A)
+    return last
+
+
 class Gather:
     """B = extract(A) for an extraction that copies entries (submatrix, block diagonal, …).
 
@@ -38,8 +49,8 @@ class Gather:
             pos = sp.csr_matrix((np.arange(1, A.nnz + 1, dtype=float), A.indices, A.indptr), shape=A.shape)
             B = sp.csr_matrix(self.extract(pos))
             B.sort_indices()
-            self.src = B.data.astype(np.int64) - 1
-            self.B, self.pattern = B, SparsityPattern(A)
+            self.src = B.data.astype(np.int32 if A.nnz < 2**31 - 1 else np.int64) - 1
+            self.B, self.pattern = B, _pattern_of(A)
         B = self.B.copy()
         B.data = A.data[self.src]
         return B

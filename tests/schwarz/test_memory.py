@@ -55,7 +55,8 @@ def test_a_small_limit_extends_in_column_blocks_with_the_same_result(survey):
     full = make_preconditioner("rgdsw-linear", H, dec, mask, geometry=geometry)
     est = full.memory
     assert est.block_columns is None and est.K > 4
-    limit = est.persistent() + 3.5 * 1.25 * est.extension_column  # room for 3 columns at a time
+    from gtsam_schwarz.schwarz.memory import OVERHEAD
+    limit = est.persistent() + 3.5 * OVERHEAD * est.extension_column  # room for 3 columns at a time
     blocked = make_preconditioner("rgdsw-linear", H, dec, mask, geometry=geometry, memory_limit=limit)
     assert blocked.memory.block_columns == 3
     x = np.random.default_rng(1).standard_normal(H.shape[0])
