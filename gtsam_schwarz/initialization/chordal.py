@@ -15,6 +15,7 @@ from scipy.sparse.linalg import splu
 
 from ..krylov import pcg
 from ..solvers.sparse import SparseCholesky
+from ..util import sorted_unique
 
 __all__ = ["ChordalResult", "chordal_initialization", "pose2_from", "project_to_so"]
 
@@ -132,7 +133,7 @@ def _anchors(n: int, edges: np.ndarray, anchor, anchor_pose, d: int):
         a = int(anchor)
         if not 0 <= a < n:
             raise ValueError(f"anchor {a} out of range 0..{n - 1}")
-        _, first = np.unique(labels, return_index=True)  # lowest index of every component
+        _, first = sorted_unique(labels, return_index=True)  # lowest index of every component
         first[labels[a]] = a
         anchors = first
         R_fix = np.broadcast_to(np.eye(d), (ncomp, d, d)).copy()
@@ -369,9 +370,9 @@ class _SchwarzLayout:
         lost = src < 0  # in a part of the graph without a seed: one aggregate per such part
         if np.any(lost):
             _, comp = csgraph.connected_components(G, directed=False)
-            _, comp_id = np.unique(comp[lost], return_inverse=True)
+            _, comp_id = sorted_unique(comp[lost], return_inverse=True)
             label[lost] = nagg + comp_id
-        _, label = np.unique(label, return_inverse=True)
+        _, label = sorted_unique(label, return_inverse=True)
         self.label, self.count = label, int(label.max()) + 1
         # (subdomain, node) pairs of the overlapping subdomains
         sub, node = label, np.arange(nf)
@@ -380,7 +381,7 @@ class _SchwarzLayout:
             by_node = sp.csr_matrix((np.ones(node.size), (node, np.arange(node.size))),
                                     shape=(nf, node.size))
             hit = (G @ by_node).tocoo()  # hit[w, p]: w is a neighbour of the node of pair p
-            pairs = np.unique(np.concatenate([sub.astype(np.int64) * nf + node,
+            pairs = sorted_unique(np.concatenate([sub.astype(np.int64) * nf + node,
                                               sub[hit.col].astype(np.int64) * nf + hit.row]))
             sub, node = pairs // nf, pairs % nf
         self.sub, self.node = sub, node

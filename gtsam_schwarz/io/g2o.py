@@ -28,6 +28,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
+from ..util import sorted_unique
 from .atomic import atomic_write
 from .landmarks import PointObservation, landmark_from_observation, observation_of, point_observation_factor
 from .tum import quaternion_to_rotation
@@ -448,7 +449,7 @@ def load_graph(path, *, add_prior: bool = True, prior_sigma: float = 1e-3, stric
                    else f"vertex {absent}, which has no {vertex_tag} line")
             raise _fail(path, parsed.edge_lines[k], f"edge {i} -> {j} references {why}")
     else:
-        pose_ids = np.unique(edge_ids)
+        pose_ids = sorted_unique(edge_ids)
         if parsed.point_ids:
             clash = np.flatnonzero(np.isin(edge_ids, np.array(parsed.point_ids, dtype=np.int64)).any(axis=1))
             if len(clash):
@@ -593,7 +594,7 @@ def _spanning_tree_poses(dim: int, pose_ids: np.ndarray, index: np.ndarray, meas
     adjacency = sp.coo_matrix((np.ones(len(index)), (index[:, 0], index[:, 1])), shape=(n, n)).tocsr()
     # first edge (in file order) joining each unordered pair {a, b}
     codes = index.min(axis=1) * n + index.max(axis=1)
-    unique_codes, first_edge = np.unique(codes, return_index=True)
+    unique_codes, first_edge = sorted_unique(codes, return_index=True)
     poses = [None] * n
     for root in range(n):
         if poses[root] is not None:

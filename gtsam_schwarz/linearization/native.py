@@ -20,6 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..dd.geometry import VertexGeometry
+from ..util import sorted_unique
 from . import native_kernels as nk
 from .base import LinearSystem
 
@@ -311,7 +312,7 @@ class NativeLinearizer:
             if not lj:
                 return None
             s = np.asarray(ls, dtype=np.int64)
-            uniq, inv = nk.sorted_unique(s, return_inverse=True)   # the distinct noise models
+            uniq, inv = sorted_unique(s, return_inverse=True)   # the distinct noise models
             used = [spec_list[u] for u in uniq.tolist()]
             R = np.stack([spec[0] for spec in used])[inv]
             code = np.asarray([spec[1] for spec in used], dtype=np.int8)[inv]
@@ -508,7 +509,7 @@ class NativeLinearizer:
 
     def _setup_others(self, graph, other_vars, values, var_index, rows, cols) -> _Others:
         keys_per_factor = [graph.at(i).keys() for i in range(graph.size()) if graph.at(i) is not None]
-        sub_keys = nk.sorted_unique(np.asarray([k for ks in keys_per_factor for k in ks], dtype=np.uint64))
+        sub_keys = sorted_unique(np.asarray([k for ks in keys_per_factor for k in ks], dtype=np.uint64))
         for ks in keys_per_factor:
             v = var_index(np.asarray(ks, dtype=np.uint64))
             if len(v) > 1:
@@ -557,7 +558,7 @@ class NativeLinearizer:
             gi, gj = K.gvar[F.i], K.gvar[F.j]
             lo, hi = np.minimum(gi, gj), np.maximum(gi, gj)
             pk = lo * len(self.keys) + hi
-            upk, pid = nk.sorted_unique(pk, return_inverse=True)
+            upk, pid = sorted_unique(pk, return_inverse=True)
             K.hseg = size
             a = np.arange(d)[:, None]
             b = np.arange(d)[None, :]

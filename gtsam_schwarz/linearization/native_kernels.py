@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from ..util import sorted_unique
+
 # ---------------------------------------------------------------------------------------------
 # Power series of the coefficient functions (argument x = θ²), for small angles
 # ---------------------------------------------------------------------------------------------
@@ -839,21 +841,6 @@ def pose3_system(F: Pose3Factors, res: Pose3Residual):
 # ---------------------------------------------------------------------------------------------
 # Fixed block pattern of H and the gather plan that fills it
 # ---------------------------------------------------------------------------------------------
-
-def sorted_unique(a: np.ndarray, return_inverse: bool = False):
-    """np.unique by one sort (numpy's hash-based unique is slower on large integer arrays)."""
-    a = np.asarray(a)
-    order = np.argsort(a, kind="stable") if return_inverse else None
-    s = a[order] if return_inverse else np.sort(a)
-    first = np.ones(len(s), dtype=bool)
-    np.not_equal(s[1:], s[:-1], out=first[1:])
-    u = s[first]
-    if not return_inverse:
-        return u
-    inv = np.empty(len(a), dtype=np.int64)
-    inv[order] = np.cumsum(first) - 1
-    return u, inv
-
 
 def in_sorted(a: np.ndarray, sorted_b: np.ndarray) -> np.ndarray:
     """Mask of the entries of a that occur in the sorted array sorted_b."""

@@ -19,7 +19,7 @@ from ...dd.decomposition import Decomposition
 from ...dd.geometry import VertexGeometry
 from ...dd.interface import Interface
 from ...solvers import SparseCholesky, SparsityPattern, factorize
-from .layout import sorted_unique
+from ...util import sorted_unique
 
 
 class _Rows:

@@ -33,7 +33,7 @@ from ...linearization.native import NativeLinearizer, NativeState
 from ...nonlinear.gauge import FREE_TOL
 from ...nonlinear.optimizer import SchwarzOptimizer
 from ...nonlinear.records import IterationRecord
-from .layout import sorted_unique
+from ...util import sorted_unique
 from .solver import PetscSchwarzSolver, petsc
 
 

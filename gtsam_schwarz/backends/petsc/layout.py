@@ -57,13 +57,6 @@ class RankLayout:
         return [np.sort(self.position[sets.get(i)]) for i in self.subdomains(rank)]
 
 
-def sorted_unique(a: np.ndarray) -> np.ndarray:
-    """Sorted distinct values by one sort (numpy 2.4's hash-based np.unique is ~50× slower on large
-    integer arrays)."""
-    a = np.sort(np.asarray(a).ravel())
-    return a[np.r_[True, a[1:] != a[:-1]]] if len(a) else a
-
-
 def _balanced_runs(weights: np.ndarray, ranks: int) -> np.ndarray:
     """Item → rank, contiguous runs with about equal total weight (every rank gets at least one
     item when there are at least as many items as ranks)."""

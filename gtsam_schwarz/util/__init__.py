@@ -1,0 +1,5 @@
+"""Array helpers below every layer (any layer may import them; they import nothing of the package)."""
+
+from .arrays import sorted_unique
+
+__all__ = ["sorted_unique"]

@@ -1,0 +1,27 @@
+"""``np.unique`` of 1-D arrays by one sort: numpy 2.4's hash-based ``np.unique`` measured 18x slower
+on 4M random integers here (0.97 s against 0.055 s), and 36 s of the PETSc assembly setup at 262k poses."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def sorted_unique(a, return_index: bool = False, return_inverse: bool = False):
+    """Like ``np.unique(a, return_index=..., return_inverse=...)`` for a 1-D array (the index is the
+    first occurrence, as numpy's): the sorted distinct values, then the requested index arrays."""
+    a = np.asarray(a).ravel()
+    if not (return_index or return_inverse):
+        s = np.sort(a)
+        return s[np.r_[True, s[1:] != s[:-1]]] if len(s) else s
+    order = np.argsort(a, kind="stable")
+    s = a[order]
+    first = np.ones(len(s), dtype=bool)
+    np.not_equal(s[1:], s[:-1], out=first[1:])
+    out = [s[first]]
+    if return_index:
+        out.append(order[first])
+    if return_inverse:
+        inv = np.empty(len(a), dtype=np.int64)
+        inv[order] = np.cumsum(first) - 1
+        out.append(inv)
+    return tuple(out)
