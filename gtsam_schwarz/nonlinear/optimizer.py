@@ -138,16 +138,20 @@ class SchwarzOptimizer:
 
     def _damped(self, system: LinearSystem, lam: float):
         """H + λD: D = I, or diag(H) clipped to [1e-6, 1e32] with ``diagonal_damping`` (GTSAM's)."""
-        H = system.H
         if lam == 0.0 and self._anchor_dofs is None:
-            return H
-        d = np.zeros(H.shape[0])
+            return system.H
+        return system.damped(self._damping_diagonal(system.H.diagonal(), lam, self._anchor_dofs))
+
+    def _damping_diagonal(self, diag: np.ndarray, lam: float, anchors) -> np.ndarray:
+        """λD (D = I, or diag(H) clipped to [1e-6, 1e32] with ``diagonal_damping``) plus, for gauge,
+        the anchors' own diagonal once more (see gauge.py); ``anchors`` index ``diag`` (or None)."""
+        d = np.zeros(len(diag))
         if lam != 0.0:
             diagonal = getattr(self.nonlinear_params, "diagonal_damping", False)
-            d = lam * (np.clip(H.diagonal(), 1e-6, 1e32) if diagonal else np.ones(H.shape[0]))
-        if self._anchor_dofs is not None:  # gauge: the anchor's own diagonal once more (see gauge.py)
-            d[self._anchor_dofs] += H.diagonal()[self._anchor_dofs]
-        return system.damped(d)
+            d = lam * (np.clip(diag, 1e-6, 1e32) if diagonal else np.ones(len(diag)))
+        if anchors is not None:
+            d[anchors] += diag[anchors]
+        return d
 
     def _try_step(self, system: LinearSystem, gnorm: float, lam: float, iteration: int,
                   seconds: dict) -> tuple[IterationRecord, object]:
@@ -163,10 +167,17 @@ class SchwarzOptimizer:
         self.forcing.solved(gnorm, tol)
         dx = result.x
         predicted = float(system.g @ dx + 0.5 * dx @ (system.H @ dx))
-        record = IterationRecord(
+        record = self._record(iteration, gnorm, lam, new_error, predicted, float(np.linalg.norm(dx)),
+                              float(np.abs(dx).max()) if len(dx) else 0.0, result, seconds, (t0, t1, t2))
+        return record, new_state
+
+    def _record(self, iteration: int, gnorm: float, lam: float, new_error: float, predicted: float,
+                step_norm: float, step_max: float, result, seconds: dict, times: tuple) -> IterationRecord:
+        """The record of one tried step; ``predicted`` = gᵀδ + ½δᵀHδ, ``times`` = (start, solved, evaluated)."""
+        t0, t1, t2 = times
+        return IterationRecord(
             iteration=iteration, error_before=self._error, error=new_error, gradient_norm=gnorm,
-            step_norm=float(np.linalg.norm(dx)), step_max=float(np.abs(dx).max()) if len(dx) else 0.0,
-            lambda_=lam,
+            step_norm=step_norm, step_max=step_max, lambda_=lam,
             model_fidelity=(self._error - new_error) / -predicted if predicted < 0 else float("nan"),
             predicted_decrease=-predicted, cg_iterations=result.iterations, cg_converged=result.converged,
             cg_tolerance=result.tolerance, lambda_min=result.lambda_min, lambda_max=result.lambda_max,
@@ -174,7 +185,6 @@ class SchwarzOptimizer:
             preconditioner_lagged=result.lagged, cg_residuals=result.residuals,
             seconds={"linearize": seconds.get("linearize", 0.0), "export": seconds.get("export", 0.0),
                      "setup": result.setup_seconds, "cg": t1 - t0 - result.setup_seconds, "update": t2 - t1})
-        return record, new_state
 
     def _accept(self, new_state, record: IterationRecord):
         self._state, self._error = new_state, record.error

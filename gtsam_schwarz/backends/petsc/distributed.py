@@ -32,7 +32,6 @@ from ...linearization import native_kernels as nk
 from ...linearization.native import NativeLinearizer, NativeState
 from ...nonlinear.gauge import FREE_TOL
 from ...nonlinear.optimizer import SchwarzOptimizer
-from ...nonlinear.records import IterationRecord
 from ...util import sorted_unique
 from .solver import PetscSchwarzSolver, petsc
 
@@ -410,13 +409,7 @@ class DistributedOptimizer(SchwarzOptimizer):
         """This rank's rows of D in H + λD (+ the anchors' diagonal once more), as ``_damped``."""
         if lam == 0.0 and self._anchor_dofs is None:
             return None
-        diag = system.H.getDiagonal().getArray(readonly=True)
-        d = np.zeros(len(diag))
-        if lam != 0.0:
-            diagonal = getattr(self.nonlinear_params, "diagonal_damping", False)
-            d = lam * (np.clip(diag, 1e-6, 1e32) if diagonal else np.ones(len(diag)))
-        d[self._anchor_rows] += diag[self._anchor_rows]
-        return d
+        return self._damping_diagonal(system.H.getDiagonal().getArray(readonly=True), lam, self._anchor_rows)
 
     def _try_step(self, system, gnorm, lam, iteration, seconds):
         if not self.distributed:
@@ -439,16 +432,8 @@ class DistributedOptimizer(SchwarzOptimizer):
         t2 = time.perf_counter()
         self.forcing.solved(gnorm, tol)
         predicted = float(gx + 0.5 * xHx)
-        record = IterationRecord(
-            iteration=iteration, error_before=self._error, error=new_error, gradient_norm=gnorm,
-            step_norm=float(np.sqrt(xx)), step_max=step_max, lambda_=lam,
-            model_fidelity=(self._error - new_error) / -predicted if predicted < 0 else float("nan"),
-            predicted_decrease=-predicted, cg_iterations=result.iterations, cg_converged=result.converged,
-            cg_tolerance=result.tolerance, lambda_min=result.lambda_min, lambda_max=result.lambda_max,
-            coarse_size=result.coarse_size, preconditioner_rebuilt=result.rebuilt,
-            preconditioner_lagged=result.lagged, cg_residuals=result.residuals,
-            seconds={"linearize": seconds.get("linearize", 0.0), "export": seconds.get("export", 0.0),
-                     "setup": result.setup_seconds, "cg": t1 - t0 - result.setup_seconds, "update": t2 - t1})
+        record = self._record(iteration, gnorm, lam, new_error, predicted, float(np.sqrt(xx)), step_max, result,
+                              seconds, (t0, t1, t2))
         return record, new_state
 
     def destroy(self) -> None:
