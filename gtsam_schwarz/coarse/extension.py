@@ -1,8 +1,8 @@
 """Discrete harmonic extension of interface values into subdomain interiors (paper Sec. 3.3).
 
 Interior values solve A_II φ_I = −A_IΓ φ_Γ; A_II is block diagonal over subdomain interiors (every
-edge lies in one subdomain), so one factorization and one multi-column solve extend every basis
-function at once.
+edge lies in one subdomain), so a few factorizations (one per group of subdomains with similar
+coarse-column counts) and one multi-column solve each extend every basis function at once.
 """
 
 from __future__ import annotations
