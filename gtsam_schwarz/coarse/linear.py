@@ -125,7 +125,7 @@ def linear_partition(interface: Interface, spacing=DEFAULT_SPACING, coordinate: 
 def junction_linear_partition(interface: Interface, spacing=JUNCTION_SPACING, face_spacing=FACE_SPACING,
                               face_radius=FACE_RADIUS):
     """:func:`linear_partition` with the end nodes of entities that meet merged into junction nodes,
-    and faces (3D) covered by sampled nodes instead of hats along one coordinate.
+    and an interface with faces (3D) covered by nodes spread over all of it instead of hats along one coordinate.
 
     Where interface edges meet (a cross point shared by three or more subdomains, or — frequent on
     METIS partitions of pose graphs, whose edge subdomains need not share a vertex where three parts
