@@ -50,7 +50,9 @@ class Gather:
             B = sp.csr_matrix(self.extract(pos))
             B.sort_indices()
             self.src = B.data.astype(np.int32 if A.nnz < 2**31 - 1 else np.int64) - 1
-            self.B, self.pattern = B, _pattern_of(A)
-        B = self.B.copy()
-        B.data = A.data[self.src]
+            self.shape, self.indices, self.indptr = B.shape, B.indices, B.indptr  # B's numbers are not kept
+            self.pattern = _pattern_of(A)
+        # every result shares the (read-only) index arrays: only its numbers are new
+        B = sp.csr_matrix((A.data[self.src], self.indices, self.indptr), shape=self.shape, copy=False)
+        B.has_sorted_indices = True
         return B

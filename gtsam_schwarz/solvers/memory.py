@@ -14,7 +14,7 @@ import os
 GIB = float(2**30)
 ENV = "GTSAM_SCHWARZ_MEMORY_LIMIT"
 FACTOR_BYTES = 8 * 1.5 + 1.0  # per predicted entry of a CHOLMOD supernodal factor (padding, row indices)
-MATRIX_BYTES = 8 + 4 + 4  # per stored entry of a gathered submatrix: value, column index, source position
+MATRIX_BYTES = 4 + 4 + 4  # per entry of a gathered submatrix: column index and source position kept, values (8) only while used
 
 
 class InsufficientMemoryError(MemoryError):

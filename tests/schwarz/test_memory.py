@@ -143,8 +143,9 @@ MEASURE = textwrap.dedent("""
 
 @pytest.mark.parametrize("problem, size, subdomains", [("lawnmower", (120, 120), 29), ("survey3d", (5, 20, 20), 4)])
 def test_estimate_within_a_factor_of_the_measured_peak(problem, size, subdomains):
-    """Estimated peak of setup + two updates against VmHWM − VmRSS of a fresh process (measured:
-    0.9–1.1 at 22 500 to 90 000 poses in 2D and 27 648 in 3D)."""
+    """Estimated peak of setup + two updates against VmHWM − VmRSS of a fresh process: on the safe
+    side and within a factor (measured estimate / peak: 1.75 and 1.24 here, 1.1–1.4 from 4 608 to
+    90 000 poses at the chordal start, docs/survey.md)."""
     try:
         open("/proc/self/clear_refs", "w").close()
     except OSError:
@@ -152,4 +153,4 @@ def test_estimate_within_a_factor_of_the_measured_peak(problem, size, subdomains
     code = MEASURE.format(problem=problem, size=size, subdomains=subdomains)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, check=True)
     r = json.loads(out.stdout.strip().splitlines()[-1])
-    assert 0.5 * r["measured"] <= r["estimate"] <= 2.0 * r["measured"], r
+    assert 0.9 * r["measured"] <= r["estimate"] <= 2.5 * r["measured"], r
