@@ -212,6 +212,12 @@ class AutoSolver(LinearSolver):
     """Direct factorization or Schwarz-preconditioned CG, chosen per graph on the first solve by
     :class:`CostModel` from CHOLMOD-style symbolic analyses of H and of the subdomain blocks."""
 
+    # the candidate's overlap unless one other than the default is asked for: rgdsw-linear on the
+    # vertex sets V_i themselves (edge subdomains already share their interface poses) took fewer CG
+    # iterations and less time than one layer more on every survey (docs/survey.md: LM 2D 90 000 poses
+    # 12.1 -> 9.8 s, 3D 18 772 27.6 -> 24.6 s, 3D 36 864 39.6 -> 35.3 s)
+    CANDIDATE_OVERLAP = 0
+
     def __init__(self, params: LinearSolverParams, offsets: np.ndarray, translation_mask: np.ndarray,
                  schwarz: str = "rgdsw-linear"):
         self.params, self.offsets, self.translation_mask, self.schwarz_name = params, offsets, translation_mask, schwarz
@@ -228,7 +234,8 @@ class AutoSolver(LinearSolver):
         """Predict both costs and keep the cheaper solver (its name in ``choice``, why in ``reason``)."""
         direct = cholesky_cost(H, self.offsets)
         t_direct = self.model.direct(direct)
-        params = LinearSolverParams(**{**vars(self.params), "preconditioner": self.schwarz_name})
+        overlap = self.params.overlap if self.params.overlap != LinearSolverParams.overlap else self.CANDIDATE_OVERLAP
+        params = LinearSolverParams(**{**vars(self.params), "preconditioner": self.schwarz_name, "overlap": overlap})
         cg = PreconditionedCG(params, self.offsets, self.translation_mask)
         floor = self.model.schwarz_floor(H.nnz)
         direct_bytes = FACTOR_BYTES * direct.nnz_L + MATRIX_BYTES * H.nnz

@@ -116,6 +116,10 @@ def test_auto_does_not_take_direct_when_its_factor_does_not_fit(survey, monkeypa
     auto.choose(H)
     assert auto.choice == "rgdsw-linear" and "available" in auto.reason
     assert auto.chosen.operator is not None and auto.chosen.operator.memory is not None  # set up once, reused
+    assert auto.decomposition.overlap == 0  # the candidate's overlap (the default was not overridden)
+    explicit = ls.AutoSolver(LinearSolverParams(subdomains=16, memory_limit=20 * direct, overlap=2), km.offsets, mask)
+    explicit.choose(H)
+    assert explicit.decomposition.overlap == 2
 
 
 MEASURE = textwrap.dedent("""
