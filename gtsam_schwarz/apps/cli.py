@@ -16,6 +16,7 @@ import sys
 from .bench import add_bench
 from .demo import add_demo
 from ..io.jsonout import json_safe
+from ..solvers.memory import InsufficientMemoryError
 from .runtime import tune_allocator
 from .commands import UsageError, add_all, make_out_dir, nonnegative_int, positive_float
 
@@ -127,6 +128,9 @@ def _run(argv) -> int:
     try:
         return args.run(args)
     except UsageError as exc:
+        _stderr(f"gtsam-schwarz {args.command}: error: {exc}")
+        return 2
+    except InsufficientMemoryError as exc:  # predicted before the heavy work: say what to change
         _stderr(f"gtsam-schwarz {args.command}: error: {exc}")
         return 2
     except KeyboardInterrupt:

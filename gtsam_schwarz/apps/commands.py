@@ -47,6 +47,19 @@ positive_float = _number(float, 0.0, strict=True)
 nonnegative_float = _number(float, 0.0, strict=False)
 
 
+def _size(text: str) -> float:
+    """argparse type: a positive size such as 512M or 2.5G, in bytes."""
+    from ..solvers.memory import parse_bytes
+
+    try:
+        value = parse_bytes(text)
+    except ValueError:
+        value = float("nan")
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a size such as 512M or 2G, got {text!r}")
+    return value
+
+
 def _load(path: str, strict: bool = False):
     """The graph of a file; the loader's warnings (skipped records, repaired information matrices) on
     stderr, or — with ``strict`` — a usage error for either."""
@@ -225,6 +238,9 @@ def add_solve(sub) -> None:
     p.add_argument("--ground-truth", metavar="FILE.g2o|FILE.tum",
                    help="reference poses (g2o VERTEX lines or a TUM file whose timestamps are the pose keys): "
                         "report ATE and RPE (RMSE, evo's definitions) of the initial guess and the result")
+    p.add_argument("--memory-limit", type=_size, default=None, metavar="SIZE",
+                   help="memory the linear solver may use, e.g. 2G (default: $GTSAM_SCHWARZ_MEMORY_LIMIT or "
+                        "what is available); a configuration predicted not to fit adapts or stops with exit 2")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     _add_quiet(p)
     p.set_defaults(run=run_solve)
@@ -300,7 +316,7 @@ def run_solve(args) -> int:
     params = SchwarzParams(method=args.method, preconditioner=args.preconditioner, subdomains=args.subdomains,
                            partition=args.partition, overlap=args.overlap, cg_tol=args.cg_tol,
                            max_iterations=args.max_iterations, iteration_hook=hook,
-                           forcing="eisenstat-walker" if args.inexact else "none")
+                           forcing="eisenstat-walker" if args.inexact else "none", memory_limit=args.memory_limit)
     with progress:
         progress.start(f"{pathlib.Path(args.file).name} ({loaded.poses} poses, {args.method} + {args.preconditioner})")
         row = run_ours(loaded.graph, loaded.initial, params, loaded.arrays)

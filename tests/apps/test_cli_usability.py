@@ -331,3 +331,12 @@ def test_loader_warnings_are_printed_and_strict_refuses(tmp_path):
     strict = subprocess.run([sys.executable, "-m", "gtsam_schwarz.apps.cli", "solve", str(f), "--strict"],
                             capture_output=True, text=True)
     assert strict.returncode == 2 and strict.stderr.count("\n") <= 2 and "(strict)" in strict.stderr
+
+
+def test_memory_limit_too_small_is_one_line_and_exit_2(tmp_path):
+    f = tmp_path / "lawn.g2o"
+    assert cli("synth", "--lawnmower", "30x30", "-o", f).returncode == 0
+    one_line_error(cli("solve", f, "--preconditioner", "rgdsw-linear", "--memory-limit", "1K", "-q"),
+                   "needs about", "GiB", "use preconditioner='direct'")
+    one_line_error(cli("solve", f, "--memory-limit", "lots"), "--memory-limit", "expected a size")
+    assert cli("solve", f, "--preconditioner", "rgdsw-linear", "--memory-limit", "4G", "-q").returncode == 0
