@@ -26,7 +26,7 @@ from .commands import _accuracy, _add_quiet, _progress, make_out_dir, positive_i
 SOLVE_CASE = (256, 64)  # loops x points per side: 65 537 poses
 SCALING_LOOPS = (4, 16, 64, 256)  # x 16 points per side: 257 … 16 385 poses
 SCALING_PRECONDITIONERS = ("block-jacobi", "one-level", "gdsw")
-FILL_SURVEYS = ((50, 50), (100, 100), (150, 150), (4, 16, 16), (8, 24, 24))  # lawnmower rows x cols; 3D floors x rows x cols
+FILL_SURVEYS = ((50, 50), (100, 100), (150, 150), (4, 16, 16), (8, 24, 24), (16, 32, 32))  # lawnmower rows x cols; 3D floors x rows x cols
 FILL_SCHWARZ = "rgdsw-linear"
 QUICK = {"solve": (8, 16), "loops": (2, 4, 8), "surveys": ((12, 12), (2, 6, 6))}
 CG_CAP = 5000
