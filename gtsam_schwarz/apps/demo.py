@@ -90,10 +90,21 @@ def _one_solve(H, rhs, offsets, mask, geometry, preconditioner: str, **options) 
     result = solver.solve(H, rhs, 1e-8, lambda: geometry)
     seconds = time.perf_counter() - t0
     residual = float(np.linalg.norm(H @ result.x - rhs) / np.linalg.norm(rhs))
-    return {"seconds": seconds, "cg": int(result.iterations), "converged": bool(result.converged or
+    memory = _schwarz_memory(getattr(solver, "operator", None), H)
+    return {"memory_bytes": memory, "seconds": seconds, "cg": int(result.iterations), "converged": bool(result.converged or
                                                                               preconditioner == "direct"),
             "coarse_size": int(result.coarse_size), "residual": residual,
             "choice": getattr(solver, "choice", preconditioner), "reason": getattr(solver, "reason", "")}
+
+
+def _schwarz_memory(M, H) -> float | None:
+    """Predicted bytes a two-level operator keeps (factors, gathered blocks, Φ, A₀; schwarz.memory's
+    parts without its allocator slack, to compare with the direct factor's bytes)."""
+    if M is None or not hasattr(M, "extension"):
+        return None
+    from ..schwarz.memory import estimate_two_level
+
+    return float(sum(estimate_two_level(M, H).parts.values()))
 
 
 def _system(problem):
@@ -137,6 +148,7 @@ def fill_part(surveys, progress) -> list[dict]:
     from ..linearization.native import NativeLinearizer
     from ..nonlinear.initialize import chordal_state
     from ..solvers import cholesky_cost
+    from ..solvers.memory import FACTOR_BYTES
 
     rows = []
     for dims in surveys:
@@ -148,7 +160,8 @@ def fill_part(surveys, progress) -> list[dict]:
                                            lin.geometry(state))
         cost = cholesky_cost(H, offsets)
         row = {"survey": name, "poses": prob.poses, "nnz_H": int(H.nnz),
-               "nnz_L": float(cost.nnz_L), "fill": float(cost.fill), "flops": float(cost.flops)}
+               "nnz_L": float(cost.nnz_L), "fill": float(cost.fill), "flops": float(cost.flops),
+               "direct_factor_bytes": float(FACTOR_BYTES * cost.nnz_L)}
         for solver in ("direct", FILL_SCHWARZ, "auto"):
             progress.start(f"fill: {name}, {solver}")
             row[solver] = _one_solve(H, rhs, offsets, mask, geometry, solver)
@@ -186,21 +199,27 @@ def print_report(report: dict) -> None:
     print()
     print(f"3. Where fill explodes: surveys, one linear solve each; direct (CHOLMOD) vs {FILL_SCHWARZ} CG")
     print(f"   {'survey':>12}{'poses':>7}{'nnz(L)/nnz(H)':>15}{'direct s':>10}{'schwarz s':>11}{'CG':>5}"
-          f"{'ratio':>7}  auto picks")
+          f"{'ratio':>7}{'direct MiB':>12}{'schwarz MiB':>13}  auto picks")
     for r in report["fill"]:
         sch = r[FILL_SCHWARZ]
         print(f"   {r['survey']:>12}{r['poses']:>7}{r['fill']:>15.1f}{r['direct']['seconds']:>10.3f}"
-              f"{sch['seconds']:>11.3f}{sch['cg']:>5}{r['schwarz_over_direct']:>7.2f}  {r['auto_choice']}")
-    print("   ratio = Schwarz seconds / direct seconds; larger graphs: docs/survey.md and "
+              f"{sch['seconds']:>11.3f}{sch['cg']:>5}{r['schwarz_over_direct']:>7.2f}"
+              f"{r['direct_factor_bytes'] / 2**20:>12.0f}{_fmt(_mib(sch['memory_bytes']), '.0f'):>13}  {r['auto_choice']}")
+    print("   ratio = Schwarz seconds / direct seconds; MiB: the direct factor and what the Schwarz "
+          "operator keeps (predicted from the symbolic analyses); larger graphs: docs/survey.md and "
           "`gtsam-schwarz bench --size large`")
 
 
+def _mib(nbytes):
+    return None if nbytes is None else nbytes / 2**20
+
+
 def figure(path, report: dict) -> str:
-    """demo.png: time per solver (1), CG iterations against poses (2), direct vs Schwarz time (3)."""
+    """demo.png: time per solver (1), CG iterations against poses (2), direct vs Schwarz time and memory (3)."""
     from .plots import save
     from .solve_plots import plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
+    fig, axes = plt.subplots(1, 4, figsize=(21, 4.6))
     rows = [r for r in report["solve"]["rows"] if "seconds" in r]
     ax = axes[0]
     ax.barh([r["solver"] for r in rows][::-1], [r["seconds"] for r in rows][::-1],
@@ -235,6 +254,22 @@ def figure(path, report: dict) -> str:
     ax.set_xlabel("poses (survey)")
     ax.set_ylabel("seconds per linear solve")
     ax.set_title("heavy fill: direct vs Schwarz")
+    ax.legend()
+    ax = axes[3]
+    for dim, marker in (("2D", "-"), ("3D", "--")):
+        rows = [r for r in report["fill"] if r["survey"].startswith(dim)]
+        if not rows:
+            continue
+        poses = [r["poses"] for r in rows]
+        ax.plot(poses, [r["direct_factor_bytes"] / 2**20 for r in rows], "s" + marker, color="0.4",
+                label=f"{dim} direct factor")
+        ax.plot(poses, [(_mib(r[FILL_SCHWARZ]["memory_bytes"]) or np.nan) for r in rows], "o" + marker,
+                color="tab:blue", label=f"{dim} {FILL_SCHWARZ} operator")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("poses (survey)")
+    ax.set_ylabel("MiB (predicted from the symbolic analyses)")
+    ax.set_title("memory: direct vs Schwarz")
     ax.legend()
     fig.tight_layout()
     return save(fig, path)
