@@ -78,8 +78,6 @@ class PreconditionedCG(LinearSolver):
         self._cg_after_build = None  # CG iterations of the first solve after the last numeric build
         self._moved = float("inf")  # max-norm of the accepted steps since the preconditioner's build
         self._rebuilt = True  # the last solve recomputed the preconditioner's numbers
-        self._update_seconds = 0.0  # the last numeric update of M
-        self._iteration_seconds = 0.0  # CG seconds per iteration in the last solve after a build
 
     def n_subdomains(self) -> int:
         p = self.params
@@ -99,17 +97,13 @@ class PreconditionedCG(LinearSolver):
     def _lag_cap(self) -> int | None:
         """Lagged preconditioner: keep the previous M while the linearization point has moved less
         than ``lag_distance`` (sum of the steps' max-norms since M was built; a rejected LM step
-        moves nothing, only λ changes). CG may then use it for its count right after the build plus
-        the larger of (``lag_growth`` − 1) × that count and the iterations a rebuild costs (the last
-        numeric update's seconds / the last fresh solve's seconds per iteration): a stale M never
-        wastes more than one rebuild's worth of CG. None: build M anew."""
+        moves nothing, only λ changes). CG may then use it for at most ``lag_growth`` × its count
+        right after the build; None: build M anew."""
         p = self.params
         if (not p.lagged_preconditioner or self.operator is None or self._cg_after_build is None
                 or self._moved >= p.lag_distance):
             return None
-        count = self._cg_after_build
-        rebuild = self._update_seconds / self._iteration_seconds if self._iteration_seconds > 0 else 0.0
-        return count + int(max((p.lag_growth - 1.0) * count, rebuild)) + 2
+        return int(p.lag_growth * self._cg_after_build) + 2
 
     def preconditioner(self, H, geometry: Geometry, lag: bool = False):
         """The operator for H: created and set up on the first call, afterwards updated in place
@@ -126,10 +120,7 @@ class PreconditionedCG(LinearSolver):
             self.operator = M
         elif lag:
             return M
-        t0 = time.perf_counter()
-        M = M.update(H, geometry() if M.uses_geometry else None)
-        self._update_seconds = time.perf_counter() - t0
-        return M
+        return M.update(H, geometry() if M.uses_geometry else None)
 
     def solve(self, H, rhs, tol, geometry):
         """Preconditioned CG to relative residual ``tol``. A lagged preconditioner that lets CG
@@ -139,9 +130,7 @@ class PreconditionedCG(LinearSolver):
         cap = self._lag_cap()
         M = self.preconditioner(H, geometry, lag=cap is not None)
         setup = time.perf_counter() - t0
-        t1 = time.perf_counter()
         x, info = pcg(H, rhs, M, tol=tol, maxiter=cap if cap is not None else p.cg_max_iterations)
-        cg_seconds = time.perf_counter() - t1
         iterations, residuals = info.iterations, list(info.residuals)
         lagged = cap is not None
         if lagged and not info.converged:  # stale: rebuild for H, continue from x
@@ -154,7 +143,6 @@ class PreconditionedCG(LinearSolver):
             self._moved = 0.0  # the warm-started count is no reference: keep the previous one
         elif self._rebuilt:
             self._cg_after_build, self._moved = info.iterations, 0.0
-            self._iteration_seconds = cg_seconds / max(info.iterations, 1)
         return SolveResult(x=x, iterations=iterations, converged=info.converged,
                            lambda_min=info.lambda_min, lambda_max=info.lambda_max,
                            residuals=residuals, tolerance=tol, setup_seconds=setup,

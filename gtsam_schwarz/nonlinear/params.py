@@ -55,7 +55,7 @@ class LinearSolverParams:
     reuse_symbolic: bool = True  # keep interface, patterns and symbolic factorizations across solves
     lagged_preconditioner: bool = True  # keep M (all its numbers) while the poses have hardly moved
     lag_distance: float = 0.1  # lagged: rebuild M once the steps since its build sum to this (max-norm)
-    lag_growth: float = 1.5  # lagged: CG cap ≥ this × the CG count right after the build (or + a rebuild's worth of iterations); beyond it, rebuild
+    lag_growth: float = 1.5  # lagged: CG cap = this × the CG count right after the build; beyond it, rebuild
     memory_limit: float | str | None = None  # bytes the linear solver may use ("2G"); None: $GTSAM_SCHWARZ_MEMORY_LIMIT or what is available
 
     def __post_init__(self):
