@@ -237,42 +237,34 @@ def figure(path, report: dict) -> str:
     ax.set_ylabel("CG iterations to 1e-8")
     ax.set_title("bounded CG with the coarse space")
     ax.legend()
-    ax = axes[2]
-    for dim, marker in (("2D", "-"), ("3D", "--")):
-        rows = [r for r in report["fill"] if r["survey"].startswith(dim)]
-        if not rows:
-            continue
-        poses = [r["poses"] for r in rows]
-        ax.plot(poses, [r["direct"]["seconds"] for r in rows], "s" + marker, color="0.4", label=f"{dim} direct")
-        ax.plot(poses, [r[FILL_SCHWARZ]["seconds"] for r in rows], "o" + marker, color="tab:blue",
-                label=f"{dim} CG + {FILL_SCHWARZ}")
-        for r in rows:
-            ax.annotate(f"{r[FILL_SCHWARZ]['cg']} CG", (r["poses"], r[FILL_SCHWARZ]["seconds"]),
-                        textcoords="offset points", xytext=(4, 4), fontsize=8, color="tab:blue")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("poses (survey)")
-    ax.set_ylabel("seconds per linear solve")
-    ax.set_title("heavy fill: direct vs Schwarz")
-    ax.legend()
-    ax = axes[3]
-    for dim, marker in (("2D", "-"), ("3D", "--")):
-        rows = [r for r in report["fill"] if r["survey"].startswith(dim)]
-        if not rows:
-            continue
-        poses = [r["poses"] for r in rows]
-        ax.plot(poses, [r["direct_factor_bytes"] / 2**20 for r in rows], "s" + marker, color="0.4",
-                label=f"{dim} direct factor")
-        ax.plot(poses, [(_mib(r[FILL_SCHWARZ]["memory_bytes"]) or np.nan) for r in rows], "o" + marker,
-                color="tab:blue", label=f"{dim} {FILL_SCHWARZ} operator")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("poses (survey)")
-    ax.set_ylabel("MiB (predicted from the symbolic analyses)")
-    ax.set_title("memory: direct vs Schwarz")
-    ax.legend()
+    _survey_panel(axes[2], report["fill"], lambda r: r["direct"]["seconds"], lambda r: r[FILL_SCHWARZ]["seconds"],
+                  ("direct", f"CG + {FILL_SCHWARZ}"), "seconds per linear solve", "heavy fill: direct vs Schwarz",
+                  note=lambda r: f"{r[FILL_SCHWARZ]['cg']} CG")
+    _survey_panel(axes[3], report["fill"], lambda r: r["direct_factor_bytes"] / 2**20,
+                  lambda r: _mib(r[FILL_SCHWARZ]["memory_bytes"]) or np.nan,
+                  ("direct factor", f"{FILL_SCHWARZ} operator"), "MiB (predicted from the symbolic analyses)",
+                  "memory: direct vs Schwarz")
     fig.tight_layout()
     return save(fig, path)
+
+
+def _survey_panel(ax, rows, direct, schwarz, labels, ylabel: str, title: str, note=None) -> None:
+    """Direct against Schwarz over the surveys' poses, 2D solid and 3D dashed, log-log."""
+    for dim, line in (("2D", "-"), ("3D", "--")):
+        part = [r for r in rows if r["survey"].startswith(dim)]
+        poses = [r["poses"] for r in part]
+        if part:
+            ax.plot(poses, [direct(r) for r in part], "s" + line, color="0.4", label=f"{dim} {labels[0]}")
+            ax.plot(poses, [schwarz(r) for r in part], "o" + line, color="tab:blue", label=f"{dim} {labels[1]}")
+        for r in part if note else ():
+            ax.annotate(note(r), (r["poses"], schwarz(r)), textcoords="offset points", xytext=(4, 4), fontsize=8,
+                        color="tab:blue")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("poses (survey)")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.legend()
 
 
 def add_demo(sub) -> None:
