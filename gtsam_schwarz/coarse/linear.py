@@ -47,6 +47,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
 
 from ..dd.interface import Interface
+from ..util import sorted_unique
 
 DEFAULT_SPACING = np.inf  # gdsw-linear: nodes at both ends of each entity only: rigid ⊗ {1, linear}
 JUNCTION_SPACING = 3.25  # rgdsw-linear on curves (2D): ~18 coarse vectors per subdomain, ~37 CG on lawnmower surveys
@@ -118,7 +119,7 @@ def linear_partition(interface: Interface, spacing=DEFAULT_SPACING, coordinate: 
     keep = weight > 1e-14
     pair_v, pair_node, weight = pair_v[keep], pair_node[keep], weight[keep]
     node_component = np.repeat(np.arange(nc), pieces + 1)
-    used, pair_node = np.unique(pair_node, return_inverse=True)  # drop nodes without weight
+    used, pair_node = sorted_unique(pair_node, return_inverse=True)  # drop nodes without weight
     return pair_v, pair_node.ravel(), weight, len(used), node_component[used]
 
 
@@ -182,7 +183,7 @@ def junction_linear_partition(interface: Interface, spacing=JUNCTION_SPACING, fa
     representative = np.empty(n_merged, dtype=np.int64)
     representative[merged[order][head]] = comp[pair_v[order][head]]
     # both ends of a short entity may have become one node: one pair per (vertex, node)
-    key, inverse = np.unique(pair_v * np.int64(n_merged) + merged, return_inverse=True)
+    key, inverse = sorted_unique(pair_v * np.int64(n_merged) + merged, return_inverse=True)
     weight = np.bincount(inverse.ravel(), weights=weight, minlength=len(key))
     return key // n_merged, key % n_merged, weight, n_merged, representative
 

@@ -17,6 +17,7 @@ import scipy.sparse as sp
 from ..dd.geometry import VertexGeometry
 from ..dd.interface import Interface
 from .linear import junction_linear_partition, linear_partition
+from ..util import sorted_unique
 
 def rigid_modes(geometry: VertexGeometry, vertices: np.ndarray, centers: np.ndarray,
                 rotation: bool) -> np.ndarray:
@@ -131,7 +132,7 @@ def interface_values(interface: Interface, offsets: np.ndarray, kind: str = "gds
     nz = vals != 0.0
     rows, cols, vals = rows[nz], cols[nz], vals[nz]
     # renumber columns densely (drops modes that vanish everywhere, e.g. unused dofs)
-    used, cols = np.unique(cols, return_inverse=True)
+    used, cols = sorted_unique(cols, return_inverse=True)
     column_component = nodes[used // max(n_modes, 1)]
     return rows, cols.ravel(), vals, column_component
 

@@ -15,6 +15,7 @@ import scipy.sparse as sp
 from .index_sets import IndexSets, vertex_dofs
 from .partition import partition_edges
 from .structure import GraphStructure
+from ..util import sorted_unique
 
 
 def _binary(M: sp.spmatrix) -> sp.csr_matrix:
@@ -47,7 +48,7 @@ class Decomposition:
         if grow_along not in ("odometry", "all"):
             raise ValueError(f"grow_along must be 'odometry' or 'all', got {grow_along!r}")
         nv, E = structure.n_vertices, len(structure.edges)
-        labels, part = np.unique(np.asarray(edge_subdomain, dtype=np.int64), return_inverse=True)
+        labels, part = sorted_unique(np.asarray(edge_subdomain, dtype=np.int64), return_inverse=True)
         N = max(len(labels), 1)
         rows = np.r_[structure.edges[:, 0], structure.edges[:, 1]]
         cols = np.r_[part, part]

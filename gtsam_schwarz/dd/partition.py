@@ -12,6 +12,7 @@ import numpy as np
 import pymetis  # the field's standard graph partitioner
 
 from .structure import GraphStructure
+from ..util import sorted_unique
 
 
 def segment_partition(structure: GraphStructure, n_subdomains: int) -> np.ndarray:
@@ -52,7 +53,7 @@ def interface_count(structure: GraphStructure, edge_subdomain: np.ndarray) -> in
     v = np.r_[e[:, 0], e[:, 1]]
     part = np.r_[edge_subdomain, edge_subdomain]
     n_parts = int(part.max(initial=0)) + 1
-    verts = np.unique(v * np.int64(n_parts) + part) // n_parts  # one entry per (vertex, subdomain)
+    verts = sorted_unique(v * np.int64(n_parts) + part) // n_parts  # one entry per (vertex, subdomain)
     return int(np.count_nonzero(np.bincount(verts, minlength=structure.n_vertices) >= 2))
 
 

@@ -7,6 +7,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from ..util import sorted_unique
+
 
 @dataclass(frozen=True)
 class GraphStructure:
@@ -37,7 +39,7 @@ class GraphStructure:
         C = sp.coo_matrix(H)
         u, v = owner[C.row], owner[C.col]
         keep = u < v
-        pairs = np.unique(u[keep] * np.int64(nv) + v[keep])
+        pairs = sorted_unique(u[keep] * np.int64(nv) + v[keep])
         edges = np.stack([pairs // nv, pairs % nv], axis=1)
         return cls(offsets=offsets, edges=edges, odometry=edges[:, 1] == edges[:, 0] + 1)
 
