@@ -114,51 +114,32 @@ class HarmonicExtension:
         self._A_G = None
         self._cached = None  # (signature of the interface values, plan)
 
-    def _plan(self, A, gamma_rows, gamma_cols, col_subdomains) -> dict:
-        """Symbolic part of one extension: the groups, which products of A_IΓ and Φ_Γ entries add up
-        to which entry of each group's compressed right-hand side, and the pattern of Φ's local rows."""
+    def _plan(self, gamma_rows, gamma_cols, col_subdomains) -> dict:
+        """Symbolic part of one extension: the groups, the pattern of Φ_Γ (interface rows) and of
+        Φ's local rows, and the compressed column of each (subdomain, coarse column) pair."""
         nc = col_subdomains.shape[0]
         P = sp.csr_matrix(col_subdomains.T)  # subdomain × column
         P.sort_indices()
         counts = np.diff(P.indptr)
         pair_sub = np.repeat(np.arange(P.shape[0]), counts)
-        pair_key = pair_sub * np.int64(nc) + P.indices  # sorted
-        local_k = np.arange(len(P.indices)) - P.indptr[pair_sub]
         idx = np.int32 if max(nc, self.n) < 2**31 - 1 else np.int64
         table = np.zeros((P.shape[0], max(int(counts.max()), 1)), dtype=idx)
-        table[pair_sub, local_k] = P.indices
+        table[pair_sub, np.arange(len(P.indices)) - P.indptr[pair_sub]] = P.indices
         group_of_sub = column_groups(counts, np.bincount(self.sub, minlength=P.shape[0]), self.max_groups)
-        # Φ_Γ triplets grouped by interface dof; every A_IΓ entry (i, g) meets each triplet of row g
         gpos = np.searchsorted(self.gamma, gamma_rows)
-        by_g = np.argsort(gpos, kind="stable")
-        g_ptr = np.searchsorted(gpos[by_g], np.arange(len(self.gamma) + 1))
+        g_order = np.lexsort((gamma_cols, gpos))
+        ptr_G = np.searchsorted(gpos[g_order], np.arange(len(self.gamma) + 1))
         self.groups, plans, indices, k_rows = [], [], [], []
         for g in np.unique(group_of_sub[self.sub]):  # at most max_groups
             rows_g = np.flatnonzero(group_of_sub[self.sub] == g)
             group = _Group(self.interior[rows_g], self.sub[rows_g], self.gamma)
-            C = group.A_IG(A).tocoo()
-            deg = g_ptr[C.col + 1] - g_ptr[C.col]
-            term_a = np.repeat(np.arange(C.nnz), deg)
-            first = np.repeat(g_ptr[C.col] - np.cumsum(deg) + deg, deg)
-            term_phi = by_g[first + np.arange(len(term_a))]
-            rows = C.row[term_a]
-            key = group.sub[rows] * np.int64(nc) + gamma_cols[term_phi]
-            at = np.minimum(np.searchsorted(pair_key, key), len(pair_key) - 1)
-            if np.any(pair_key[at] != key):
-                raise AssertionError("interface coupling outside its subdomain: decomposition is inconsistent")
-            k_of_term = local_k[at]  # sorted by local column: a block of columns is a contiguous range
-            by_k = np.argsort(k_of_term, kind="stable")
             k_row = counts[group.sub]
             K, nI = int(k_row.max()), len(rows_g)
             prefix = np.arange(K)[None, :] < k_row[:, None]
             indices.append(table[group.sub, :K][prefix])  # Φ_I: row r holds its subdomain's K_i columns
             k_rows.append(k_row)
-            plans.append({"K": K, "nI": nI, "term_a": term_a[by_k], "term_phi": term_phi[by_k],
-                          "target": k_of_term[by_k] * np.int64(nI) + rows[by_k],  # column-major blocks
-                          "term_k_ptr": np.searchsorted(k_of_term[by_k], np.arange(K + 1)), "k_row": k_row})
+            plans.append({"K": K, "nI": nI, "k_row": k_row, "target": None})
             self.groups.append(group)
-        g_order = np.lexsort((gamma_cols, gpos))
-        ptr_G = np.searchsorted(gpos[g_order], np.arange(len(self.gamma) + 1))
         nnz_I = sum(len(i) for i in indices)
         indptr = np.r_[0, np.cumsum(np.concatenate(k_rows)), nnz_I + ptr_G[1:]].astype(np.int64)
         offset = 0
@@ -173,31 +154,63 @@ class HarmonicExtension:
         if indptr[-1] < 2**31 - 1:
             indptr = indptr.astype(np.int32)
         return {"groups": plans, "nI": len(self.interior), "nnz_I": nnz_I, "g_order": g_order,
-                "indices": indices, "indptr": indptr}
+                "indices": indices, "indptr": indptr, "ptr_G": ptr_G, "nc": nc,
+                "pair_key": pair_sub * np.int64(nc) + P.indices, "local_k": np.arange(len(P.indices)) - P.indptr[pair_sub]}
 
     def columns_per_block(self, K: int) -> int:
         return K if self.block_columns is None else max(1, min(K, int(self.block_columns)))
 
-    def _extend(self, group: _Group, A_IG: sp.csr_matrix, gamma_vals: np.ndarray, plan: dict, data: np.ndarray) -> None:
+    def _targets(self, group: _Group, R: sp.csr_matrix, plan: dict, gplan: dict) -> np.ndarray:
+        """Position k·n_I + r in the compressed right-hand side of every entry (r, column) of
+        R = A_IΓ Φ_Γ: k is the column's place among the K_i columns of row r's subdomain."""
+        nI, nc = gplan["nI"], plan["nc"]
+        rows = np.repeat(np.arange(nI), np.diff(R.indptr))
+        key = group.sub[rows] * np.int64(nc) + R.indices
+        pair_key = plan["pair_key"]
+        at = np.minimum(np.searchsorted(pair_key, key), len(pair_key) - 1)
+        if np.any(pair_key[at] != key):
+            raise AssertionError("interface coupling outside its subdomain: decomposition is inconsistent")
+        dtype = np.int32 if gplan["K"] * nI < 2**31 - 1 else np.int64
+        return (plan["local_k"][at] * np.int64(nI) + rows).astype(dtype)
+
+    def _extend(self, group: _Group, A_IG: sp.csr_matrix, Phi_G: sp.csr_matrix, plan: dict, gplan: dict,
+                data: np.ndarray) -> None:
         """One group's Φ_I = −A_II⁻¹ A_IΓ Φ_Γ into data (row-major), a block of columns of the
-        compressed right-hand side at a time."""
-        K, nI = plan["K"], plan["nI"]
-        weights = -A_IG.data[plan["term_a"]] * gamma_vals[plan["term_phi"]]
-        k_ptr, k_row = plan["term_k_ptr"], plan["k_row"]
-        out = data[plan["offset"]:plan["offset"] + plan["row_start"][-1]]
+        compressed right-hand side at a time. A_IΓ Φ_Γ is one sparse product; where its entries go
+        in the compressed right-hand side is found once, from the product's structural pattern
+        (scipy's product keeps that pattern and order unless an entry cancels to exactly zero, and
+        then the positions are found anew)."""
+        K, nI = gplan["K"], gplan["nI"]
+        R = A_IG @ Phi_G
+        target = gplan["target"]
+        if target is None:  # the structural pattern: the same product of all-ones matrices
+            ones = lambda M: sp.csr_matrix((np.ones(M.nnz), M.indices, M.indptr), shape=M.shape)
+            structural = ones(A_IG) @ ones(Phi_G)
+            target = gplan["target"] = self._targets(group, structural, plan, gplan)
+            del structural
+        if R.nnz != len(target):  # an exact cancellation dropped entries: positions for this product
+            target = self._targets(group, R, plan, gplan)
+        values = -R.data
+        del R
+        k_row = gplan["k_row"]
+        out = data[gplan["offset"]:gplan["offset"] + gplan["row_start"][-1]]
         width = self.columns_per_block(K)
         for k0 in range(0, K, width):  # a loop over blocks of coarse columns (one when memory allows)
             k1 = min(K, k0 + width)
-            lo, hi = k_ptr[k0], k_ptr[k1]
-            B = np.bincount(plan["target"][lo:hi] - k0 * nI, weights=weights[lo:hi],
-                            minlength=nI * (k1 - k0)).reshape(k1 - k0, nI).T  # F-ordered nI × (k1 − k0)
-            X = group.factor(B)
+            B = np.zeros((k1 - k0) * nI)
+            if k0 == 0 and k1 == K:
+                B[target] = values
+            else:
+                keep = (target >= k0 * nI) & (target < k1 * nI)
+                B[target[keep] - k0 * nI] = values[keep]
+                del keep
+            X = group.factor(B.reshape(k1 - k0, nI).T)  # F-ordered nI × (k1 − k0)
             del B
             sel = np.arange(k0, k1)[None, :] < k_row[:, None]
             if k0 == 0 and k1 == K:
                 out[:] = X[sel]  # row-major prefix of every row: Φ_I's CSR order
             else:
-                out[(plan["row_start"][:-1, None] + np.arange(k0, k1)[None, :])[sel]] = X[sel]
+                out[(gplan["row_start"][:-1, None] + np.arange(k0, k1)[None, :])[sel]] = X[sel]
             del X, sel
 
     def __call__(self, A: sp.spmatrix, gamma_rows: np.ndarray, gamma_cols: np.ndarray,
@@ -217,12 +230,14 @@ class HarmonicExtension:
                 or not all(np.array_equal(a, b) for a, b in zip(cached[0], signature))):
             self._cached = None
             self._cached = cached = (tuple(np.array(a, copy=True) for a in signature),
-                                     self._plan(A, gamma_rows, gamma_cols, col_subdomains))
+                                     self._plan(gamma_rows, gamma_cols, col_subdomains))
         plan = cached[1]
         data = np.empty(len(plan["indices"]))
+        Phi_G = sp.csr_matrix((gamma_vals[plan["g_order"]], plan["indices"][plan["nnz_I"]:], plan["ptr_G"]),
+                              shape=(len(self.gamma), nc))
         for group, gplan in zip(self.groups, plan["groups"]):
             group.refactor(A)
-            self._extend(group, group.A_IG(A), gamma_vals, gplan, data)
+            self._extend(group, group.A_IG(A), Phi_G, plan, gplan, data)
             if not self.keep_factors:
                 group.factor = None  # the next refactor analyses anew
         data[plan["nnz_I"]:] = gamma_vals[plan["g_order"]]

@@ -86,7 +86,9 @@ def interface_values(interface: Interface, offsets: np.ndarray, kind: str = "gds
     except KeyError:
         raise ValueError(f"unknown coarse space {kind!r}; choose one of {', '.join(COARSE_SPACES)}") from None
     comp = interface.component
-    pou = partition_of_unity(interface)
+    # the partition of unity depends on the interface only: computed once per interface and kind
+    cache = interface.__dict__.setdefault("_partitions_of_unity", {})  # (a frozen dataclass's own dict)
+    pou = cache[kind] if kind in cache else cache.setdefault(kind, partition_of_unity(interface))
     if len(pou) == 4:  # nodes are interface components
         pair_v, pair_node, weight, nodes = pou
         node_col = np.full(interface.n_components, -1, dtype=np.int64)

@@ -82,7 +82,10 @@ class PreconditionedCG(LinearSolver):
     def n_subdomains(self) -> int:
         p = self.params
         nv = len(self.offsets) - 1
-        return p.subdomains if p.subdomains is not None else default_subdomains(nv, p.subdomain_size)
+        if p.subdomains is not None:
+            return p.subdomains
+        dims = np.diff(self.offsets)
+        return default_subdomains(nv, p.subdomain_size, int(np.bincount(dims).argmax()) if nv else 3)
 
     def _decompose(self, H):
         if self.decomposition is None:

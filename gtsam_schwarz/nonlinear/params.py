@@ -41,7 +41,7 @@ class LinearSolverParams:
 
     preconditioner: str = "auto"  # auto | direct | a registered preconditioner (none, jacobi, …, gdsw, rgdsw)
     subdomains: int | None = None  # None: about `subdomain_size` poses each
-    subdomain_size: int = 500
+    subdomain_size: int | None = None  # None: 500 poses in 2D, 64 in 3D (dd.partition.DEFAULT_SUBDOMAIN_SIZE)
     partition: str = "auto"  # auto (segments or metis, the smaller interface) | segments | metis
     overlap: int = 1
     grow_along: str = "odometry"  # odometry | all

@@ -19,11 +19,20 @@ from .sparse import SparseCholesky
 def block_diagonal(A: sp.spmatrix, sets) -> sp.csr_matrix:
     """diag(R_1 A R_1ᵀ, …, R_N A R_Nᵀ) as one sparse matrix (couplings between blocks dropped);
     ``sets`` is an :class:`~gtsam_schwarz.dd.IndexSets`."""
-    R = sets.restriction()
-    C = (R @ sp.csr_matrix(A) @ R.T).tocoo()
-    blk = sets.block_of_entry()
-    keep = blk[C.row] == blk[C.col]
+    A = sp.csr_matrix(A)
     m = len(sets.indices)
+    blk = sets.block_of_entry()
+    position = np.full(sets.n, -1, dtype=np.int64)
+    position[sets.indices] = np.arange(m)
+    if np.count_nonzero(position >= 0) == m:  # disjoint sets (no overlap): select A's entries, no product
+        block = np.full(sets.n, -1, dtype=np.int64)
+        block[sets.indices] = blk
+        rows = np.repeat(np.arange(A.shape[0]), np.diff(A.indptr))
+        keep = (block[rows] >= 0) & (block[rows] == block[A.indices])
+        return sp.csr_matrix((A.data[keep], (position[rows[keep]], position[A.indices[keep]])), shape=(m, m))
+    R = sets.restriction()
+    C = (R @ A @ R.T).tocoo()
+    keep = blk[C.row] == blk[C.col]
     return sp.csr_matrix((C.data[keep], (C.row[keep], C.col[keep])), shape=(m, m))
 
 
