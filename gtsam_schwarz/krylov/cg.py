@@ -53,7 +53,8 @@ STOPPING_NORMS = ("residual", "natural")
 
 
 def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
-        callback=None, norm: str = "residual") -> tuple[np.ndarray, CGInfo]:
+        callback=None, norm: str = "residual", checkpoint: tuple[int, float] | None = None
+        ) -> tuple[np.ndarray, CGInfo]:
     """Solve A x = b (A SPD) by CG preconditioned with M ≈ A⁻¹ (SPD).
 
     Stops when ‖b − A x‖₂ ≤ tol·‖b‖₂ (the paper's relative tolerance) or after ``maxiter``
@@ -62,6 +63,9 @@ def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
     ``norm="natural"`` stops instead when the preconditioned ("natural") residual norm has
     decreased by ``tol``: √(rᵀM⁻¹r) ≤ tol·√(r₀ᵀM⁻¹r₀) (PETSc's KSP_NORM_NATURAL); this reproduces
     the CG counts of the paper's bar chain table. ``residuals`` stay ‖r_k‖₂/‖b‖₂ for either norm.
+
+    ``checkpoint=(k, bound)`` gives up (not converged) when iteration k ends with ‖r_k‖₂/‖b‖₂ above
+    ``bound``: a caller that expects a convergence rate stops a solve that is falling behind it.
     """
     if norm not in STOPPING_NORMS:
         raise ValueError(f"unknown stopping norm {norm!r}; choose one of {', '.join(STOPPING_NORMS)}")
@@ -105,6 +109,9 @@ def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
         info.iterations = k
         if callback is not None:
             callback(x)
+        if checkpoint is not None and k == checkpoint[0] and rnorm > checkpoint[1] * bnorm:
+            info.reason = f"behind the expected rate at iteration {k}"
+            break
         if natural:
             z = _apply(M, r)
             rz_new = float(r @ z)

@@ -78,6 +78,7 @@ class PreconditionedCG(LinearSolver):
         self._cg_after_build = None  # CG iterations of the first solve after the last numeric build
         self._moved = float("inf")  # max-norm of the accepted steps since the preconditioner's build
         self._rebuilt = True  # the last solve recomputed the preconditioner's numbers
+        self._fresh_residuals = None  # relative residuals of that first solve after the build
 
     def n_subdomains(self) -> int:
         p = self.params
@@ -108,6 +109,22 @@ class PreconditionedCG(LinearSolver):
             return None
         return int(p.lag_growth * self._cg_after_build) + 2
 
+    LAG_CHECK_MIN = 5  # the earliest iteration at which a lagged solve is compared with the fresh one
+
+    def _lag_checkpoint(self, cap: int) -> tuple[int, float] | None:
+        """(k, bound): a lagged solve whose relative residual at iteration k is above ``bound`` is
+        given up there and M rebuilt, instead of running on to the cap. At k = max(5, F/4), F the
+        fresh count, the fresh solve had reached ρ_k; a solve that needs more than ``cap``
+        iterations converges at less than F/cap of its rate (in log residual), so bound = ρ_k^(F/cap).
+        Decided from residuals only, so the serial and PETSc solvers take the same decisions."""
+        F, history = self._cg_after_build, self._fresh_residuals
+        if not F or not history:
+            return None
+        k = max(self.LAG_CHECK_MIN, F // 4)
+        if k >= min(F, len(history) - 1) or not 0.0 < history[k] < 1.0:
+            return None
+        return k, float(history[k] ** (F / cap))
+
     def preconditioner(self, H, geometry: Geometry, lag: bool = False):
         """The operator for H: created and set up on the first call, afterwards updated in place
         (same subdomains, interface, submatrix patterns and symbolic factorizations; new numbers).
@@ -133,7 +150,8 @@ class PreconditionedCG(LinearSolver):
         cap = self._lag_cap()
         M = self.preconditioner(H, geometry, lag=cap is not None)
         setup = time.perf_counter() - t0
-        x, info = pcg(H, rhs, M, tol=tol, maxiter=cap if cap is not None else p.cg_max_iterations)
+        x, info = pcg(H, rhs, M, tol=tol, maxiter=cap if cap is not None else p.cg_max_iterations,
+                      checkpoint=self._lag_checkpoint(cap) if cap is not None else None)
         iterations, residuals = info.iterations, list(info.residuals)
         lagged = cap is not None
         if lagged and not info.converged:  # stale: rebuild for H, continue from x
@@ -146,6 +164,7 @@ class PreconditionedCG(LinearSolver):
             self._moved = 0.0  # the warm-started count is no reference: keep the previous one
         elif self._rebuilt:
             self._cg_after_build, self._moved = info.iterations, 0.0
+            self._fresh_residuals = list(info.residuals)
         return SolveResult(x=x, iterations=iterations, converged=info.converged,
                            lambda_min=info.lambda_min, lambda_max=info.lambda_max,
                            residuals=residuals, tolerance=tol, setup_seconds=setup,

@@ -157,3 +157,36 @@ def test_symbolic_reuse_gives_the_same_iterates_as_rebuilding_from_scratch():
     a, b = runs
     assert [h["cg_iterations"] for h in a.history] == [h["cg_iterations"] for h in b.history]
     assert abs(a.error() - b.error()) <= 1e-9 * b.error()
+
+
+def test_a_lagged_solve_falling_behind_the_fresh_rate_is_given_up_at_its_checkpoint():
+    """M built for H; the next matrix differs a lot: the lagged solve stops at the checkpoint
+    (max(5, F/4)), M is rebuilt, and CG finishes from there, well before the lag cap."""
+    import scipy.sparse as sp
+
+    from gtsam_schwarz.linearization.native import NativeLinearizer
+    from gtsam_schwarz.nonlinear.linear_solver import PreconditionedCG
+    from gtsam_schwarz.nonlinear.params import LinearSolverParams
+
+    prob = square_loops(8, 16, sigma=0.01, seed=0)
+    lin = NativeLinearizer.from_arrays(**prob.arrays)
+    state = lin.initial_state()
+    system = lin.linearize(state)
+    H, g = system.H.tocsr(), system.rhs
+    solver = PreconditionedCG(LinearSolverParams(preconditioner="gdsw", subdomains=8, partition="segments",
+                                                 lag_distance=10.0, lag_growth=3.0),
+                              lin.offsets, lin.translation_mask())
+    first = solver.solve(H, g, 1e-8, lambda: lin.geometry(state))
+    F = first.iterations
+    cap = solver._lag_cap()
+    assert cap == int(3.0 * F) + 2
+    k, bound = solver._lag_checkpoint(cap)
+    assert k == max(5, F // 4) and first.residuals[k] < bound < 1.0
+    d = np.random.default_rng(0).uniform(1.0, 30.0, H.shape[0])
+    H2 = sp.csr_matrix(sp.diags(np.sqrt(d)) @ H @ sp.diags(np.sqrt(d)))  # far from H: M is stale
+    second = solver.solve(H2, g, 1e-8, lambda: lin.geometry(state))
+    assert second.lagged and second.rebuilt and second.converged
+    assert np.linalg.norm(H2 @ second.x - g) <= 1e-7 * np.linalg.norm(g)
+    fresh = PreconditionedCG(solver.params, lin.offsets, lin.translation_mask()).solve(
+        H2, g, 1e-8, lambda: lin.geometry(state))
+    assert second.iterations < k + fresh.iterations + 10 < cap + fresh.iterations  # gave up at k, not at the cap

@@ -383,13 +383,30 @@ class PetscSchwarzSolver(PreconditionedCG):
         self.timings["pc_setup"] += time.perf_counter() - t1
         self.operator = _Operator(self._coarse_size)
 
-    def _ksp_solve(self, tol: float, maxiter: int, warm: bool):
+    def _ksp_solve(self, tol: float, maxiter: int, warm: bool, checkpoint: tuple[int, float] | None = None,
+                   bnorm: float = 0.0):
+        """KSP solve; ``checkpoint=(k, bound)``: give up when ‖r_k‖/‖b‖ > bound (krylov.pcg's rule)."""
         ksp = self.ksp
+        PETSc = self.PETSc
         ksp.setTolerances(rtol=tol, atol=0.0, divtol=DIVERGENCE, max_it=maxiter)
         ksp.setInitialGuessNonzero(warm)
         ksp.setConvergenceHistory(length=min(maxiter + 1, HISTORY_MAX), reset=True)
+        if checkpoint is not None and bnorm > 0:
+            k0, bound = checkpoint
+
+            def converged(ksp, its, rnorm):  # the default test (zero initial guess: r₀ = b) plus the checkpoint
+                if rnorm <= tol * bnorm:
+                    return PETSc.KSP.ConvergedReason.CONVERGED_RTOL
+                if its >= maxiter or (its == k0 and rnorm > bound * bnorm):
+                    return PETSc.KSP.ConvergedReason.DIVERGED_MAX_IT
+                return PETSc.KSP.ConvergedReason.ITERATING
+            ksp.setConvergenceTest(converged)
         t0 = time.perf_counter()
-        ksp.solve(self._b, self._x)
+        try:
+            ksp.solve(self._b, self._x)
+        finally:
+            if checkpoint is not None and bnorm > 0:
+                ksp.setConvergenceTest(None)  # back to KSPConvergedDefault
         self.timings["ksp_solve"] += time.perf_counter() - t0
         its = int(ksp.getIterationNumber()) if self.kind[0] != "direct" else 0
         reason = int(ksp.getConvergedReason())
@@ -475,7 +492,9 @@ class PetscSchwarzSolver(PreconditionedCG):
         setup = time.perf_counter() - t0
         n = self.layout.n
         maxiter = cap if lagged else (p.cg_max_iterations or 10 * n)
-        its, reason, history, lmin, lmax = self._ksp_solve(tol, maxiter, warm=False)
+        checkpoint = self._lag_checkpoint(cap) if lagged else None
+        its, reason, history, lmin, lmax = self._ksp_solve(tol, maxiter, warm=False, checkpoint=checkpoint,
+                                                           bnorm=bnorm)
         residuals = list(history / bnorm) if bnorm > 0 else [0.0]
         converged = reason > 0
         if lagged and not converged:  # stale: rebuild for H, continue from x
@@ -490,6 +509,7 @@ class PetscSchwarzSolver(PreconditionedCG):
             self._moved = 0.0  # the warm-started count is no reference: keep the previous one
         elif self._rebuilt:
             self._cg_after_build, self._moved = its, 0.0
+            self._fresh_residuals = residuals
         return SolveResult(x=self._x, iterations=its, converged=converged, lambda_min=lmin, lambda_max=lmax,
                            residuals=residuals, tolerance=tol if self.kind[0] != "direct" else 0.0,
                            setup_seconds=setup, coarse_size=self._coarse_size, rebuilt=self._rebuilt,
