@@ -80,7 +80,8 @@ class Decomposition:
         per_col = np.bincount(col, weights=dims[S.indices], minlength=S.shape[1]).astype(np.int64)
         ptr = np.zeros(S.shape[1] + 1, dtype=np.int64)
         np.cumsum(per_col, out=ptr[1:])
-        return IndexSets(indices=dofs, ptr=ptr, n=self.structure.n_dofs)
+        return IndexSets(indices=dofs, ptr=ptr, n=self.structure.n_dofs, vertices=S.indices.astype(np.int64),
+                         vertex_ptr=S.indptr.astype(np.int64), offsets=np.asarray(offsets, dtype=np.int64))
 
 
 def segments(structure: GraphStructure, n_subdomains: int, overlap: int = 1,

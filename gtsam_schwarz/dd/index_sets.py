@@ -24,6 +24,11 @@ class IndexSets:
     indices: np.ndarray
     ptr: np.ndarray
     n: int  # global dimension
+    # where the sets are unions of whole vertices (poses): set i is the dofs of vertices[vertex_ptr[i]:
+    # vertex_ptr[i+1]] in that order, vertex v owning dofs offsets[v]:offsets[v+1] (None: not known)
+    vertices: np.ndarray | None = None
+    vertex_ptr: np.ndarray | None = None
+    offsets: np.ndarray | None = None
 
     @property
     def count(self) -> int:

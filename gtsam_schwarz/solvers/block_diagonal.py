@@ -30,10 +30,64 @@ def block_diagonal(A: sp.spmatrix, sets) -> sp.csr_matrix:
         rows = np.repeat(np.arange(A.shape[0]), np.diff(A.indptr))
         keep = (block[rows] >= 0) & (block[rows] == block[A.indices])
         return sp.csr_matrix((A.data[keep], (position[rows[keep]], position[A.indices[keep]])), shape=(m, m))
+    if sets.vertices is not None:
+        B = _block_diagonal_by_vertices(A, sets)
+        if B is not None:
+            return B
     R = sets.restriction()
     C = (R @ A @ R.T).tocoo()
     keep = blk[C.row] == blk[C.col]
     return sp.csr_matrix((C.data[keep], (C.row[keep], C.col[keep])), shape=(m, m))
+
+
+def _block_diagonal_by_vertices(A: sp.csr_matrix, sets) -> sp.csr_matrix | None:
+    """:func:`block_diagonal` for sets of whole vertices and a matrix made of whole dense vertex
+    blocks (H is): the product R A Rᵀ is formed on the vertex pattern (a 9th or 36th of the entries
+    for Pose2 / Pose3 blocks) and every kept vertex block is expanded to its dof entries, rows in
+    order (CSR with sorted indices, no sort). None when A is not block-dense."""
+    from ..dd.index_sets import IndexSets
+    from .cost import vertex_pattern
+
+    offsets = sets.offsets
+    dims = np.diff(offsets)
+    nv = len(dims)
+    V = vertex_pattern(A, offsets)
+    V.sort_indices()
+    vrow = np.repeat(np.arange(nv), np.diff(V.indptr))
+    if int(np.sum(dims[vrow] * dims[V.indices])) != A.nnz:
+        return None  # not whole blocks: the dof-level product
+    # where block (u, v) starts in each dof row of u: the widths of the blocks before it in the row
+    width = dims[V.indices]
+    before = np.cumsum(width) - width
+    col_start = before - before[V.indptr[vrow]]
+    V.data = np.arange(1, V.nnz + 1, dtype=float)  # 1 + the vertex entry's number
+    Bv = block_diagonal(V, IndexSets(indices=sets.vertices, ptr=sets.vertex_ptr, n=nv))
+    Bv.sort_indices()
+    entry = Bv.data.astype(np.int64) - 1
+    vert = sets.vertices
+    dpos = np.cumsum(dims[vert]) - dims[vert]  # dof position of every vertex position
+    # 1) each vertex row's entries expanded by the column block's width: dof columns and the
+    #    offset of each in the dof rows of A (same for every dof row of the vertex)
+    dv = dims[vert[Bv.indices]]
+    first = np.cumsum(dv) - dv
+    c = np.arange(int(dv.sum())) - np.repeat(first, dv)
+    seg_cols = np.repeat(dpos[Bv.indices], dv) + c
+    seg_src = np.repeat(col_start[entry], dv) + c
+    seg_ptr = np.r_[0, np.cumsum(np.add.reduceat(dv, Bv.indptr[:-1]) * (np.diff(Bv.indptr) > 0))] \
+        if Bv.nnz else np.zeros(Bv.shape[0] + 1, dtype=np.int64)
+    # 2) dof row a of vertex position P repeats P's segment, reading A's row offsets[u] + a
+    du = dims[vert]
+    row_vertex_pos = np.repeat(np.arange(len(vert)), du)
+    a = np.arange(len(row_vertex_pos)) - np.repeat(dpos, du)
+    lengths = (seg_ptr[1:] - seg_ptr[:-1])[row_vertex_pos]
+    indptr = np.r_[0, np.cumsum(lengths)]
+    j = np.arange(int(indptr[-1])) - np.repeat(indptr[:-1], lengths)
+    base = np.repeat(seg_ptr[:-1][row_vertex_pos], lengths) + j
+    src = np.repeat(A.indptr[offsets[vert[row_vertex_pos]] + a], lengths) + seg_src[base]
+    m = len(sets.indices)
+    B = sp.csr_matrix((A.data[src], seg_cols[base], indptr), shape=(m, m))
+    B.has_sorted_indices = True
+    return B
 
 
 class BlockDiagonalSolver:
