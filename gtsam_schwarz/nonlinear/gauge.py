@@ -18,10 +18,12 @@ from ..dd.geometry import VertexGeometry
 FREE_TOL = 1e-8  # Rayleigh quotient zᵀHz / zᵀdiag(H)z of a translation mode below this: no anchor
 
 
-def free_components(H: sp.csr_matrix, offsets: np.ndarray, geometry: VertexGeometry | None) -> np.ndarray:
+def free_components(H: sp.csr_matrix, offsets: np.ndarray, geometry: VertexGeometry | None,
+                    diagonal: np.ndarray | None = None) -> np.ndarray:
     """First vertex of every connected component whose rigid translations are in H's null space.
 
-    Needs the poses (``geometry``); without them (other variable types) returns none."""
+    Needs the poses (``geometry``); without them (other variable types) returns none. ``diagonal``:
+    the positions of H's diagonal in ``H.data`` where the caller knows them (else H.diagonal())."""
     offsets = np.asarray(offsets, dtype=np.int64)
     nv = len(offsets) - 1
     if geometry is None or nv == 0:
@@ -35,26 +37,23 @@ def free_components(H: sp.csr_matrix, offsets: np.ndarray, geometry: VertexGeome
         modes = np.zeros((nv, dim, d))   # translation t ↦ Rᵀt: Pose2 dofs (x, y), Pose3 dofs (v)
         modes[:, slice(0, 2) if d == 2 else slice(3, 6), :] = np.swapaxes(geometry.rotations, 1, 2)
         Z = modes.reshape(nv * dim, d)
-        per_vertex = True
     else:
         modes = rigid_modes(geometry, np.arange(nv), np.zeros((nv, d)), rotation=False)  # (nv, dim, d)
         dim = modes.shape[1]
         Z = np.zeros((H.shape[0], d))
         Z[(offsets[:-1, None] + np.arange(dim)).ravel()] = modes.reshape(nv * dim, d)
-        per_vertex = False
     HZ = H @ Z
-    HZ *= Z
-    DZ = H.diagonal()[:, None] * Z
-    DZ *= Z
-    if per_vertex:   # Σ over each vertex's dofs first, then over the components
-        HZ, DZ, owner = HZ.reshape(nv, dim, d).sum(1), DZ.reshape(nv, dim, d).sum(1), comp
+    diag = H.data[diagonal] if diagonal is not None else H.diagonal()
+    if n_comp == 1:   # zᵀHz and zᵀdiag(H)z of the d modes as products (no per-vertex sums)
+        zHz = np.einsum("ij,ij->j", HZ, Z)[None]
+        zDz = np.einsum("i,ij,ij->j", diag, Z, Z)[None]
     else:
+        HZ *= Z
+        ZZ = Z * Z
+        ZZ *= diag[:, None]
         owner = np.repeat(comp, dims)
-    if n_comp == 1:
-        zHz, zDz = HZ.sum(0)[None], DZ.sum(0)[None]
-    else:
         zHz = np.stack([np.bincount(owner, HZ[:, k], minlength=n_comp) for k in range(d)], -1)
-        zDz = np.stack([np.bincount(owner, DZ[:, k], minlength=n_comp) for k in range(d)], -1)
+        zDz = np.stack([np.bincount(owner, ZZ[:, k], minlength=n_comp) for k in range(d)], -1)
     ratio = (zHz / np.where(zDz > 0, zDz, 1.0)).max(axis=1)
     free = np.flatnonzero(ratio < FREE_TOL)
     first = np.full(n_comp, nv, dtype=np.int64)

@@ -118,7 +118,8 @@ class SchwarzOptimizer:
         export = system.seconds.get("export", 0.0)
         system.seconds = {**system.seconds, "linearize": total - export, "export": export}
         if self.anchors is None:
-            self.anchors = free_components(system.H, self.linearizer.offsets, self.linearizer.geometry(self._state))
+            self.anchors = free_components(system.H, self.linearizer.offsets, self.linearizer.geometry(self._state),
+                                           system.diagonal)
             self._anchor_dofs = vertex_dofs(self.anchors, self.linearizer.offsets) if len(self.anchors) else None
         return system
 

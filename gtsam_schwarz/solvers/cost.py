@@ -37,14 +37,29 @@ def vertex_pattern(A: sp.spmatrix, offsets: np.ndarray) -> sp.csr_matrix:
     """The vertex-level pattern of a block matrix (1 where block (u, v) is stored).
 
     Reads only the first row of every vertex and, in it, the first column of every block: A's
-    pattern holds whole blocks (the fixed pattern of H does), so nothing else is needed."""
+    pattern holds whole blocks (the fixed pattern of H does), so nothing else is needed. With one
+    block size d everywhere that is every d-th entry of those rows, and the CSR arrays are written
+    directly (no triplet conversion)."""
     offsets = np.asarray(offsets, dtype=np.int64)
     nv = len(offsets) - 1
     A = sp.csr_matrix(A)
-    owner = np.repeat(np.arange(nv), np.diff(offsets))
+    dims = np.diff(offsets)
     first = offsets[:-1]
-    starts, ends = A.indptr[first], A.indptr[first + 1]
-    lengths = ends - starts
+    starts = A.indptr[first].astype(np.int64)
+    lengths = A.indptr[first + 1] - starts
+    if nv and A.has_sorted_indices and np.all(dims == dims[0]):
+        step = int(dims[0])
+        count = lengths // step
+        indptr = np.zeros(nv + 1, dtype=np.int64)
+        np.cumsum(count, out=indptr[1:])
+        pos = np.repeat(starts - step * indptr[:-1], count) + step * np.arange(indptr[-1])
+        cols = A.indices[pos] // step
+        if np.array_equal(cols * step, A.indices[pos]) and indptr[-1] * step == lengths.sum():  # whole blocks
+            itype = np.int32 if max(nv, len(cols)) < 2**31 else np.int64
+            B = sp.csr_matrix((np.ones(len(cols)), cols.astype(itype), indptr.astype(itype)), shape=(nv, nv))
+            B.has_sorted_indices = True
+            return B
+    owner = np.repeat(np.arange(nv), dims)
     pos = np.repeat(starts - np.cumsum(lengths) + lengths, lengths) + np.arange(int(lengths.sum()))
     cols = A.indices[pos]
     rows = np.repeat(np.arange(nv), lengths)
@@ -68,10 +83,7 @@ def pattern_cholesky_cost(B: sp.spmatrix, dims: np.ndarray, nnz_A: int | None = 
         return CholeskyCost(0, 0.0, 0.0, 0)
     d = float(np.mean(dims))
     B = sp.csr_matrix(B)
-    B = B + B.T
-    B.data[:] = -1.0
-    deg = -np.asarray(B.sum(axis=1)).ravel()
-    S = (B + sp.diags(deg + 1.0 + 1e-3 * np.arange(nv) / max(nv, 1))).tocsc()  # SPD, the same pattern
+    S = _surrogate(B)  # SPD, the same pattern
     counts = _factor_column_counts(S)
     nnz_L = d * d * counts.sum() - nv * d * (d - 1) / 2
     flops = d ** 3 * float(np.sum(counts.astype(float) ** 2))
@@ -80,11 +92,39 @@ def pattern_cholesky_cost(B: sp.spmatrix, dims: np.ndarray, nnz_A: int | None = 
     return CholeskyCost(nnz_A=nnz_A, nnz_L=float(nnz_L), flops=flops, n_dofs=int(dims.sum()))
 
 
+def _surrogate(B: sp.csr_matrix) -> sp.csc_matrix:
+    """The diagonally dominant Laplacian with the symmetrized pattern of B and its diagonal:
+    −1 off the diagonal, deg + ε_v on it (deg counts the row's entries, diagonal included).
+
+    A structurally symmetric B with every diagonal entry and sorted indices (a vertex pattern of
+    H) is used as it is: its CSR arrays are the CSC arrays of S (no sum with Bᵀ, no diagonal sum)."""
+    nv = B.shape[0]
+    eps = 1e-3 * np.arange(nv) / max(nv, 1)
+    if B.has_sorted_indices:
+        indptr, indices = B.indptr, B.indices
+        deg = np.diff(indptr)
+        rows = np.repeat(np.arange(nv, dtype=indices.dtype), deg)
+        on_diagonal = indices == rows
+        if np.count_nonzero(on_diagonal) == nv:
+            T = B.T.tocsr()  # the transpose's pattern: symmetric iff it equals B's
+            T.sort_indices()
+            if np.array_equal(T.indptr, indptr) and np.array_equal(T.indices, indices):
+                data = np.full(len(indices), -1.0)
+                data[on_diagonal] = -1.0 + (deg + 1.0 + eps)
+                S = sp.csc_matrix((data, indices, indptr), shape=(nv, nv))
+                S.has_sorted_indices = True
+                return S
+    B = B + B.T
+    B.data[:] = -1.0
+    deg = -np.asarray(B.sum(axis=1)).ravel()
+    return (B + sp.diags(deg + 1.0 + eps)).tocsc()
+
+
 def _factor_column_counts(S: sp.csc_matrix) -> np.ndarray:
     """Column counts of the Cholesky factor of S under the solver's own fill-reducing ordering."""
     if SPARSE_BACKEND == "cholmod":
         from sksparse.cholmod import cholesky
-        L = cholesky(S, mode="simplicial").L().tocsc()
+        L = sp.csc_matrix(cholesky(S, mode="simplicial").LD())  # the pattern of L (D on its diagonal)
         return np.diff(L.indptr)
     lu = spla.splu(S, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     return np.diff(sp.csc_matrix(lu.L).indptr)

@@ -1,0 +1,120 @@
+"""Shortcuts on H's fixed block pattern give what the general code gives: the vertex pattern read
+with a stride, the cost surrogate written from it directly, the gauge test's column sums."""
+
+import numpy as np
+import scipy.sparse as sp
+
+import gtsam_schwarz as gs
+from gtsam_schwarz.linearization.native import NativeLinearizer
+from gtsam_schwarz.nonlinear.gauge import free_components
+from gtsam_schwarz.solvers import cost
+
+
+def _general_vertex_pattern(A, offsets):
+    """Reference: every stored entry mapped to its (vertex, vertex) pair."""
+    offsets = np.asarray(offsets)
+    owner = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
+    C = sp.coo_matrix(A)
+    B = sp.csr_matrix((np.ones(C.nnz), (owner[C.row], owner[C.col])), shape=(len(offsets) - 1,) * 2)
+    B.data[:] = 1.0
+    B.sort_indices()
+    return B
+
+
+def _general_surrogate(B):
+    nv = B.shape[0]
+    B = B + B.T
+    B.data[:] = -1.0
+    deg = -np.asarray(B.sum(axis=1)).ravel()
+    return (B + sp.diags(deg + 1.0 + 1e-3 * np.arange(nv) / max(nv, 1))).tocsc()
+
+
+def _system(loops=4, points=8):
+    p = gs.square_loops(loops=loops, points_per_side=points, sigma=0.01, seed=0)
+    lin = NativeLinearizer.from_arrays(**p.arrays)
+    state = lin.state(p.initial)
+    return lin, state, lin.linearize(state)
+
+
+def _same(A, B):
+    A, B = sp.csr_matrix(A), sp.csr_matrix(B)
+    A.sort_indices()
+    B.sort_indices()
+    return (np.array_equal(A.indptr, B.indptr) and np.array_equal(A.indices, B.indices)
+            and np.array_equal(A.data, B.data))
+
+
+def test_vertex_pattern_strided_equals_general():
+    lin, _, system = _system()
+    B = cost.vertex_pattern(system.H, lin.offsets)
+    assert _same(B, _general_vertex_pattern(system.H, lin.offsets))
+
+
+def test_vertex_pattern_mixed_block_sizes_and_unsorted():
+    rng = np.random.default_rng(1)
+    dims = np.array([3, 2, 3, 1, 3, 2])
+    offsets = np.concatenate([[0], np.cumsum(dims)])
+    nv = len(dims)
+    V = sp.random(nv, nv, density=0.4, random_state=2)
+    V = ((V + V.T + sp.eye(nv)) != 0).astype(float)
+    A = sp.csr_matrix(sp.kron(V, np.ones((3, 3))))   # blocks cut to the real sizes below
+    keep = np.concatenate([np.arange(o, o + d) for o, d in zip(np.arange(nv) * 3, dims)])
+    A = sp.csr_matrix(A[keep][:, keep])
+    A.data = rng.normal(size=A.nnz)
+    ref = _general_vertex_pattern(A, offsets)
+    assert _same(cost.vertex_pattern(A, offsets), ref)
+    U = A.copy()
+    U.indices = U.indices.copy()
+    for r in range(U.shape[0]):   # reverse each row: unsorted indices
+        lo, hi = U.indptr[r], U.indptr[r + 1]
+        U.indices[lo:hi] = U.indices[lo:hi][::-1].copy()
+        U.data[lo:hi] = U.data[lo:hi][::-1].copy()
+    U.has_sorted_indices = False
+    assert _same(cost.vertex_pattern(U, offsets), ref)
+    # uniform blocks but unsorted: the general path
+    W = sp.csr_matrix(sp.kron(V, np.ones((3, 3))))
+    W.indices = np.ascontiguousarray(W.indices)
+    for r in range(W.shape[0]):
+        lo, hi = W.indptr[r], W.indptr[r + 1]
+        W.indices[lo:hi] = W.indices[lo:hi][::-1].copy()
+    W.has_sorted_indices = False
+    assert _same(cost.vertex_pattern(W, np.arange(nv + 1) * 3), _general_vertex_pattern(W, np.arange(nv + 1) * 3))
+
+
+def test_surrogate_direct_equals_sum():
+    lin, _, system = _system()
+    B = cost.vertex_pattern(system.H, lin.offsets)
+    assert _same(cost._surrogate(B), _general_surrogate(B))
+    # unsymmetric pattern and a missing diagonal entry: the general sum
+    C = sp.csr_matrix(np.array([[1, 1, 0], [0, 0, 1], [0, 0, 1.0]]))
+    assert _same(cost._surrogate(C), _general_surrogate(C))
+
+
+def test_cholesky_cost_of_native_system_unchanged():
+    lin, _, system = _system()
+    B = _general_vertex_pattern(system.H, lin.offsets)
+    S = _general_surrogate(B)
+    counts = cost._factor_column_counts(S)
+    c = cost.cholesky_cost(system.H, lin.offsets)
+    assert c.nnz_L == 9.0 * counts.sum() - len(counts) * 3.0
+    assert c.flops == 27.0 * float(np.sum(counts.astype(float) ** 2))
+
+
+def test_free_components_with_known_diagonal():
+    """No prior: one free component; two copies of the graph side by side: two."""
+    p = gs.square_loops(loops=4, points_per_side=8, sigma=0.01, seed=0)
+    a = p.arrays
+    n = len(a["keys"])
+    for copies in (1, 2):
+        keys = np.concatenate([a["keys"] + c * 10 * n for c in range(copies)])
+        edges = np.concatenate([a["edges"] + c * 10 * n for c in range(copies)])
+        lin = NativeLinearizer.from_arrays(
+            a["kind"], keys, np.concatenate([a["poses"]] * copies), edges,
+            np.concatenate([a["measurements"]] * copies), information=np.concatenate([a["information"]] * copies))
+        state = lin.initial_state()
+        system = lin.linearize(state)
+        geo = lin.geometry(state)
+        ref = free_components(system.H, lin.offsets, geo)
+        got = free_components(system.H, lin.offsets, geo, system.diagonal)
+        assert np.array_equal(ref, got) and len(got) == copies
+        assert np.array_equal(got, np.arange(copies) * n)
