@@ -208,12 +208,13 @@ def add_solve(sub) -> None:
                         "a cost model from the symbolic analysis predicts faster for this graph), 'direct', or a "
                         "CG preconditioner (gdsw: two-level Schwarz with the GDSW coarse space, …)")
     p.add_argument("--subdomains", type=positive_int, default=None, metavar="N",
-                   help="number of subdomains (default: about 500 poses each)")
+                   help="number of subdomains (default: about 500 poses each in 2D, 64 in 3D)")
     p.add_argument("--partition", choices=PARTITIONS, default="auto",
                    help="how to cut the graph: trajectory segments, METIS, or auto (whichever gives fewer "
                         "interface poses; default)")
-    p.add_argument("--overlap", type=nonnegative_int, default=1, metavar="K",
-                   help="layers of overlap grown around each subdomain (default 1)")
+    p.add_argument("--overlap", type=nonnegative_int, default=None, metavar="K",
+                   help="layers of overlap grown around each subdomain (default: 0 for rgdsw-linear, "
+                        "gdsw-linear and auto, 1 for the others)")
     p.add_argument("--cg-tol", type=positive_float, default=1e-8, metavar="T",
                    help="CG stopping tolerance, relative residual (default 1e-8)")
     p.add_argument("--max-iterations", type=nonnegative_int, default=100, metavar="N",
@@ -273,8 +274,9 @@ def _solve_on_petsc(args) -> int:
     if not ok:
         raise UsageError(f"--backend petsc: {why}")
     argv = [args.file, "--method", args.method, "--preconditioner", args.preconditioner, "--partition", args.partition,
-            "--overlap", str(args.overlap), "--cg-tol", repr(args.cg_tol), "--max-iterations", str(args.max_iterations)]
+            "--cg-tol", repr(args.cg_tol), "--max-iterations", str(args.max_iterations)]
     argv += ["--subdomains", str(args.subdomains)] if args.subdomains else []
+    argv += ["--overlap", str(args.overlap)] if args.overlap is not None else []
     argv += [flag for flag, on in (("--inexact", args.inexact), ("--force", args.force), ("--json", args.json)) if on]
     argv += ["-o", args.output] if args.output else []
     if args.ranks is None:
@@ -333,7 +335,7 @@ def run_solve(args) -> int:
     report = {
         "file": str(args.file), "poses": loaded.poses, "edges": loaded.edges, "dimension": loaded.dimension,
         "method": args.method, "preconditioner": args.preconditioner, "partition": args.partition,
-        "subdomains": row["subdomains"], "overlap": args.overlap, "coarse_size": row["coarse_size"],
+        "subdomains": row["subdomains"], "overlap": params.overlap_layers(), "coarse_size": row["coarse_size"],
         "iterations": row["iterations"], "linear_solves": row["linear_solves"],
         "cg_iterations": row["cg_iterations"], "cg_mean": row["cg_mean"],
         "initial_error": row["initial_error"], "final_error": row["final_error"],

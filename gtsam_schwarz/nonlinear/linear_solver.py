@@ -92,7 +92,7 @@ class PreconditionedCG(LinearSolver):
         if self.decomposition is None:
             p = self.params
             structure = GraphStructure.from_matrix(H, self.offsets)
-            self.decomposition = decompose(structure, self.n_subdomains(), p.partition, p.overlap, p.grow_along)
+            self.decomposition = decompose(structure, self.n_subdomains(), p.partition, p.overlap_layers(), p.grow_along)
         return self.decomposition
 
     def moved(self, step_max: float) -> None:
@@ -234,11 +234,10 @@ class AutoSolver(LinearSolver):
     """Direct factorization or Schwarz-preconditioned CG, chosen per graph on the first solve by
     :class:`CostModel` from CHOLMOD-style symbolic analyses of H and of the subdomain blocks."""
 
-    # the candidate's overlap unless one other than the default is asked for: rgdsw-linear on the
-    # vertex sets V_i themselves (edge subdomains already share their interface poses) took fewer CG
-    # iterations and less time than one layer more on every survey (docs/survey.md: LM 2D 90 000 poses
-    # 12.1 -> 9.8 s, 3D 18 772 27.6 -> 24.6 s, 3D 36 864 39.6 -> 35.3 s)
-    CANDIDATE_OVERLAP = 0
+    # the candidate's overlap is LinearSolverParams.overlap_layers("rgdsw-linear"): 0 unless asked
+    # for; on the vertex sets V_i themselves (edge subdomains already share their interface poses) it
+    # took fewer CG iterations and less time than one layer more on every survey (docs/survey.md:
+    # LM 2D 90 000 poses 12.1 -> 9.8 s, 3D 18 772 27.6 -> 24.6 s, 3D 36 864 39.6 -> 35.3 s)
 
     def __init__(self, params: LinearSolverParams, offsets: np.ndarray, translation_mask: np.ndarray,
                  schwarz: str = "rgdsw-linear"):
@@ -256,8 +255,7 @@ class AutoSolver(LinearSolver):
         """Predict both costs and keep the cheaper solver (its name in ``choice``, why in ``reason``)."""
         direct = cholesky_cost(H, self.offsets)
         t_direct = self.model.direct(direct)
-        overlap = self.params.overlap if self.params.overlap != LinearSolverParams.overlap else self.CANDIDATE_OVERLAP
-        params = LinearSolverParams(**{**vars(self.params), "preconditioner": self.schwarz_name, "overlap": overlap})
+        params = LinearSolverParams(**{**vars(self.params), "preconditioner": self.schwarz_name})
         cg = PreconditionedCG(params, self.offsets, self.translation_mask)
         floor = self.model.schwarz_floor(H.nnz)
         direct_bytes = FACTOR_BYTES * direct.nnz_L + MATRIX_BYTES * H.nnz

@@ -43,7 +43,8 @@ class LinearSolverParams:
     subdomains: int | None = None  # None: about `subdomain_size` poses each
     subdomain_size: int | None = None  # None: 500 poses in 2D, 64 in 3D (dd.partition.DEFAULT_SUBDOMAIN_SIZE)
     partition: str = "auto"  # auto (segments or metis, the smaller interface) | segments | metis
-    overlap: int = 1
+    overlap: int | None = None  # None: 0 for rgdsw-linear / gdsw-linear (their edge subdomains share the interface
+    # poses already; one layer more cost time and CG iterations on every survey, docs/survey.md), 1 otherwise
     grow_along: str = "odometry"  # odometry | all
     interface_grouping: str = "components"  # components | vertices | two-hop (rgdsw-linear / gdsw-linear always use two-hop)
     coarse_modes: str = "rigid"  # rigid (rigid-body modes about component centroids) | unit
@@ -68,7 +69,7 @@ class LinearSolverParams:
         _choice("coarse_modes", self.coarse_modes, ("rigid", "unit"))
         if self.subdomains is not None and self.subdomains < 1:
             raise ValueError(f"subdomains must be >= 1, got {self.subdomains}")
-        if self.overlap < 0:
+        if self.overlap is not None and self.overlap < 0:
             raise ValueError(f"overlap must be >= 0, got {self.overlap}")
         if not self.cg_tol > 0:
             raise ValueError(f"cg_tol must be > 0, got {self.cg_tol}")
@@ -78,6 +79,13 @@ class LinearSolverParams:
             raise ValueError(f"memory_limit must be > 0, got {self.memory_limit!r}")
         if not self.lag_growth >= 1:
             raise ValueError(f"lag_growth must be >= 1, got {self.lag_growth}")
+
+    def overlap_layers(self, preconditioner: str | None = None) -> int:
+        """The overlap δ for ``preconditioner`` (default: this one): ``overlap``, or when it is None,
+        0 for the linear coarse spaces (and auto, whose Schwarz candidate is one) and 1 otherwise."""
+        if self.overlap is not None:
+            return self.overlap
+        return 0 if (preconditioner or self.preconditioner) in ("rgdsw-linear", "gdsw-linear", "auto") else 1
 
 
 @dataclass

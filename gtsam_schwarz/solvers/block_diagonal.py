@@ -45,7 +45,6 @@ def _block_diagonal_by_vertices(A: sp.csr_matrix, sets) -> sp.csr_matrix | None:
     blocks (H is): the product R A Rᵀ is formed on the vertex pattern (a 9th or 36th of the entries
     for Pose2 / Pose3 blocks) and every kept vertex block is expanded to its dof entries, rows in
     order (CSR with sorted indices, no sort). None when A is not block-dense."""
-    from ..dd.index_sets import IndexSets
     from .cost import vertex_pattern
 
     offsets = sets.offsets
@@ -61,7 +60,7 @@ def _block_diagonal_by_vertices(A: sp.csr_matrix, sets) -> sp.csr_matrix | None:
     before = np.cumsum(width) - width
     col_start = before - before[V.indptr[vrow]]
     V.data = np.arange(1, V.nnz + 1, dtype=float)  # 1 + the vertex entry's number
-    Bv = block_diagonal(V, IndexSets(indices=sets.vertices, ptr=sets.vertex_ptr, n=nv))
+    Bv = block_diagonal(V, type(sets)(indices=sets.vertices, ptr=sets.vertex_ptr, n=nv))  # vertex-level sets
     Bv.sort_indices()
     entry = Bv.data.astype(np.int64) - 1
     vert = sets.vertices

@@ -76,7 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preconditioner", choices=LINEAR_SOLVERS, default="gdsw")
     p.add_argument("--subdomains", type=_positive(int), default=None, metavar="N")
     p.add_argument("--partition", choices=PARTITIONS, default="auto")
-    p.add_argument("--overlap", type=_nonnegative_int, default=1, metavar="K")
+    p.add_argument("--overlap", type=_nonnegative_int, default=None, metavar="K")
     p.add_argument("--cg-tol", type=_positive(float), default=1e-8, metavar="T")
     p.add_argument("--max-iterations", type=_nonnegative_int, default=100, metavar="N")
     p.add_argument("--inexact", action="store_true")
@@ -215,7 +215,7 @@ def solve(args, comm) -> dict:
         **info, "backend": "serial" if args.serial else "petsc", "ranks": comm.Get_size(),
         "local_solver": linear.local_solver if linear is not None else None,
         "method": args.method, "preconditioner": args.preconditioner, "partition": args.partition,
-        "subdomains": s["subdomains"], "overlap": args.overlap, "coarse_size": s["coarse_size"],
+        "subdomains": s["subdomains"], "overlap": params.overlap_layers(), "coarse_size": s["coarse_size"],
         "iterations": s["iterations"], "linear_solves": s["linear_solves"],
         "cg_iterations": s["cg_iterations"], "cg_mean": s["cg_mean"],
         "lambda_min": [h.lambda_min for h in opt.history], "lambda_max": [h.lambda_max for h in opt.history],
