@@ -120,7 +120,7 @@ def test_demo_quick_json_reports_the_three_parts_and_writes_the_figure(tmp_path)
     assert largest["gdsw"] < largest["one-level"] < largest["block-jacobi"]  # the paper's ordering
     for r in report["fill"]:
         assert r["fill"] > 1 and r["rgdsw-linear"]["residual"] < 1e-7 and r["direct"]["residual"] < 1e-9
-        assert r["auto_choice"] in ("direct", "gdsw", "rgdsw-linear")
+        assert r["auto_choice"] in ("direct", "gdsw", "rgdsw-linear") and isinstance(r["auto_picks_faster"], bool)
     assert (tmp_path / "demo.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
