@@ -233,21 +233,36 @@ class _BlockSystem:
 
         ij = np.where(i < j, upper[pid], lower[pid])
         ji = np.where(i < j, lower[pid], upper[pid])
+        self.fixed_dofs = (anchors[:, None] * d + a).ravel()
+        self.fixed_diagonal = entries(diag[anchors], anchors)[:, a, a].ravel()
+        if d == 1 and npairs == m:
+            # one unknown per node and every pair once: block positions are CSR positions, each
+            # off-diagonal entry has one contribution (written, not summed), diagonals summed per node
+            self.contrib = None
+            self.scalar = (ij, ji, np.concatenate([i, j]), diag)
+            is_anchor = np.zeros(n, dtype=bool)
+            is_anchor[anchors] = True
+            count = rowlen[anchors]   # the anchors' rows, then their columns (one entry per edge)
+            start = np.repeat(bptr[anchors] - (np.cumsum(count) - count), count)
+            self.fixed_entries = np.concatenate([start + np.arange(int(count.sum())), ji[is_anchor[i]],
+                                                 ij[is_anchor[j]]])
+            return
         self.contrib = np.concatenate([entries(diag[i], i), entries(diag[j], j), entries(ij, i),
                                        entries(ji, j)]).reshape(-1)   # (4m·d²,)
         fixed = np.zeros(n * d, dtype=bool)
-        self.fixed_dofs = (anchors[:, None] * d + a).ravel()
         fixed[self.fixed_dofs] = True
         self.fixed_entries = np.flatnonzero(np.repeat(fixed, np.diff(self.indptr)) | fixed[self.indices])
-        self.fixed_diagonal = entries(diag[anchors], anchors)[:, a, a].ravel()
 
     def matrix(self, blocks, rhs: np.ndarray, x_fixed: np.ndarray):
         """The anchored system (A, b) from the edges' (ii, jj, ij, ji) blocks, the free rows' right-hand
         side ``rhs`` (n·d, k) and the anchored dofs' values ``x_fixed`` (n_fixed·d, k)."""
-        values = np.concatenate(blocks).ravel()
-        data = np.bincount(self.contrib, values.real, minlength=self.nnz)
-        if np.iscomplexobj(values):   # Hermitian (2D rotations as unit complex numbers)
-            data = data + 1j * np.bincount(self.contrib, values.imag, minlength=self.nnz)
+        if self.contrib is None:
+            data = self._scalar_data(blocks)
+        else:
+            values = np.concatenate(blocks).ravel()
+            data = np.bincount(self.contrib, values.real, minlength=self.nnz)
+            if np.iscomplexobj(values):   # Hermitian (2D rotations as unit complex numbers)
+                data = data + 1j * np.bincount(self.contrib, values.imag, minlength=self.nnz)
         A = sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n * self.d,) * 2)
         A.has_sorted_indices = True
         x = np.zeros_like(rhs)
@@ -257,6 +272,25 @@ class _BlockSystem:
         data[self.fixed_entries] = 0.0
         data[self.fixed_diagonal] = 1.0
         return A, b
+
+
+    def _scalar_data(self, blocks) -> np.ndarray:
+        """CSR values of the one-unknown system, the numbers the summing path gives: off-diagonal
+        entries (one contribution each) written as 0 + v, diagonals summed per node in its order
+        (ii of every edge, then jj)."""
+        ii, jj, ij, ji = (np.asarray(b).reshape(-1) for b in blocks)
+        pos_ij, pos_ji, node, diag = self.scalar
+        complex_ = any(np.iscomplexobj(b) for b in (ii, jj, ij, ji))
+        data = np.empty(self.nnz, dtype=complex if complex_ else float)
+        zero = 0j if complex_ else 0.0
+        data[pos_ij] = ij + zero   # + 0 as the sum into zeros: −0 becomes +0
+        data[pos_ji] = ji + zero
+        w = np.concatenate([ii, jj])
+        if complex_:
+            data[diag] = np.bincount(node, w.real, minlength=self.n) + 1j * np.bincount(node, w.imag, minlength=self.n)
+        else:
+            data[diag] = np.bincount(node, w, minlength=self.n)
+        return data
 
 
 def _spanning_tree(n: int, edges: np.ndarray, weight: np.ndarray, anchors: np.ndarray):
