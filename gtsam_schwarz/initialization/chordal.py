@@ -594,6 +594,7 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
         A, b = system.matrix(blocks, rhs, x_fixed)
         if np.iscomplexobj(A.data):   # CSR of a Hermitian A is the CSC of conj(A): conjugate it back
             A = sp.csc_matrix((np.conj(A.data), A.indices, A.indptr), shape=A.shape)
+            A.has_sorted_indices = True   # the pattern's rows are sorted: no O(nnz) check per use
         key = (id(system), A.dtype.kind)   # one factorization per pattern and number type
         if key in factors:
             factors[key].refactor(A)

@@ -141,7 +141,9 @@ class SchwarzOptimizer:
         """H + λD: D = I, or diag(H) clipped to [1e-6, 1e32] with ``diagonal_damping`` (GTSAM's)."""
         if lam == 0.0 and self._anchor_dofs is None:
             return system.H
-        return system.damped(self._damping_diagonal(system.H.diagonal(), lam, self._anchor_dofs))
+        # the linearizer's known diagonal positions: a gather, not a search of every row
+        diag = system.H.data[system.diagonal] if system.diagonal is not None else system.H.diagonal()
+        return system.damped(self._damping_diagonal(diag, lam, self._anchor_dofs))
 
     def _damping_diagonal(self, diag: np.ndarray, lam: float, anchors) -> np.ndarray:
         """λD (D = I, or diag(H) clipped to [1e-6, 1e32] with ``diagonal_damping``) plus, for gauge,

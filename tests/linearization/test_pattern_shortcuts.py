@@ -118,3 +118,14 @@ def test_free_components_with_known_diagonal():
         got = free_components(system.H, lin.offsets, geo, system.diagonal)
         assert np.array_equal(ref, got) and len(got) == copies
         assert np.array_equal(got, np.arange(copies) * n)
+
+
+def test_diagonal_positions_read_the_diagonal():
+    """LM's damping reads H's diagonal at the linearizer's positions: the same numbers as H.diagonal()."""
+    from gtsam_schwarz.linearization.gtsam_export import GtsamLinearizer
+
+    p = gs.square_loops(loops=4, points_per_side=8, sigma=0.01, seed=0)
+    for lin in (NativeLinearizer(p.graph, p.initial), GtsamLinearizer(p.graph, p.initial)):
+        system = lin.linearize(lin.state(p.initial))
+        assert system.diagonal is not None
+        assert np.array_equal(system.H.data[system.diagonal], system.H.diagonal())
