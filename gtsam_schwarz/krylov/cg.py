@@ -53,8 +53,7 @@ STOPPING_NORMS = ("residual", "natural")
 
 
 def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
-        callback=None, norm: str = "residual", checkpoint: tuple[int, float] | None = None
-        ) -> tuple[np.ndarray, CGInfo]:
+        callback=None, norm: str = "residual", bounds=None) -> tuple[np.ndarray, CGInfo]:
     """Solve A x = b (A SPD) by CG preconditioned with M ≈ A⁻¹ (SPD).
 
     Stops when ‖b − A x‖₂ ≤ tol·‖b‖₂ (the paper's relative tolerance) or after ``maxiter``
@@ -64,8 +63,9 @@ def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
     decreased by ``tol``: √(rᵀM⁻¹r) ≤ tol·√(r₀ᵀM⁻¹r₀) (PETSc's KSP_NORM_NATURAL); this reproduces
     the CG counts of the paper's bar chain table. ``residuals`` stay ‖r_k‖₂/‖b‖₂ for either norm.
 
-    ``checkpoint=(k, bound)`` gives up (not converged) when iteration k ends with ‖r_k‖₂/‖b‖₂ above
-    ``bound``: a caller that expects a convergence rate stops a solve that is falling behind it.
+    ``bounds`` (a sequence) gives up (not converged) when an iteration k < len(bounds) ends with
+    ‖r_k‖₂/‖b‖₂ above ``bounds[k]``: a caller that expects a convergence rate stops a solve that
+    falls behind it.
     """
     if norm not in STOPPING_NORMS:
         raise ValueError(f"unknown stopping norm {norm!r}; choose one of {', '.join(STOPPING_NORMS)}")
@@ -109,7 +109,7 @@ def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
         info.iterations = k
         if callback is not None:
             callback(x)
-        if checkpoint is not None and k == checkpoint[0] and rnorm > checkpoint[1] * bnorm:
+        if bounds is not None and k < len(bounds) and rnorm > bounds[k] * bnorm:
             info.reason = f"behind the expected rate at iteration {k}"
             break
         if natural:

@@ -109,21 +109,26 @@ class PreconditionedCG(LinearSolver):
             return None
         return int(p.lag_growth * self._cg_after_build) + 2
 
-    LAG_CHECK_MIN = 5  # the earliest iteration at which a lagged solve is compared with the fresh one
+    LAG_CHECK_MIN = 5  # the first iteration at which a lagged solve is compared with the fresh one
 
-    def _lag_checkpoint(self, cap: int) -> tuple[int, float] | None:
-        """(k, bound): a lagged solve whose relative residual at iteration k is above ``bound`` is
-        given up there and M rebuilt, instead of running on to the cap. At k = max(5, F/4), F the
-        fresh count, the fresh solve had reached ρ_k; a solve that needs more than ``cap``
-        iterations converges at less than F/cap of its rate (in log residual), so bound = ρ_k^(F/cap).
-        Decided from residuals only, so the serial and PETSc solvers take the same decisions."""
+    def _lag_bounds(self, cap: int) -> np.ndarray | None:
+        """Relative residual bounds per iteration for a lagged solve: above ``bounds[k]`` it is given
+        up and M rebuilt, instead of running on to the cap. The fresh solve after the build reached
+        ρ_k at iteration k and converged in F; a solve that needs more than ``cap`` iterations
+        converges at less than F/cap of that rate (in log residual), so bounds[k] = ρ_k^(F/cap) from
+        k = max(5, F/4) to F − 1 (no bound before). Residuals only: the serial and PETSc solvers take
+        the same decisions."""
         F, history = self._cg_after_build, self._fresh_residuals
         if not F or not history:
             return None
-        k = max(self.LAG_CHECK_MIN, F // 4)
-        if k >= min(F, len(history) - 1) or not 0.0 < history[k] < 1.0:
+        rho = np.asarray(history[:F], dtype=float)
+        k0 = max(self.LAG_CHECK_MIN, F // 4)
+        if k0 >= len(rho):
             return None
-        return k, float(history[k] ** (F / cap))
+        bounds = np.full(len(rho), np.inf)
+        ok = (rho > 0.0) & (rho < 1.0)
+        bounds[k0:] = np.where(ok[k0:], rho[k0:] ** (F / cap), np.inf)
+        return bounds
 
     def preconditioner(self, H, geometry: Geometry, lag: bool = False):
         """The operator for H: created and set up on the first call, afterwards updated in place
@@ -151,7 +156,7 @@ class PreconditionedCG(LinearSolver):
         M = self.preconditioner(H, geometry, lag=cap is not None)
         setup = time.perf_counter() - t0
         x, info = pcg(H, rhs, M, tol=tol, maxiter=cap if cap is not None else p.cg_max_iterations,
-                      checkpoint=self._lag_checkpoint(cap) if cap is not None else None)
+                      bounds=self._lag_bounds(cap) if cap is not None else None)
         iterations, residuals = info.iterations, list(info.residuals)
         lagged = cap is not None
         if lagged and not info.converged:  # stale: rebuild for H, continue from x
@@ -184,7 +189,7 @@ class CostModel:
 
     FLOP = 3e-10
     FLOP_KNEE = 1e9  # beyond this many flops, the rate of large supernodes
-    FLOP_LARGE = 2e-11
+    FLOP_LARGE = 1.2e-11  # 3D survey 32x32x32: 8.7e11 flops, nnz(L) 2.0e8 factorized in 14.8 s (2e-11 predicted 22.1 s)
     ENTRY = 2e-8
     SOLVE = 2e-9
     SPMV = 3e-9
@@ -193,8 +198,9 @@ class CostModel:
     SCHWARZ_OVERHEAD = 6.0  # gathers, interface values, Φ and A₀ assembly, Python: measured 2–10× the counted work
 
     def factor_seconds(self, flops: float) -> float:
-        """Small supernodes run at ~3 GFlop/s, large ones (3D fill) at ~50 (BLAS-3 in CHOLMOD's
-        supernodes): measured 1.25e9 flops in 0.27 s (torus3D), 2.8e11 flops in 4.6 s (3D survey)."""
+        """Small supernodes run at ~3 GFlop/s, large ones (3D fill) at ~80 (BLAS-3 in CHOLMOD's
+        supernodes): measured 1.25e9 flops in 0.27 s (torus3D), 1.46e11 flops + 6.4e7 nnz(L) in 3.8 s
+        and 8.7e11 + 2.0e8 in 14.8 s (3D surveys of 16 384 and 32 768 poses)."""
         return self.FLOP * min(flops, self.FLOP_KNEE) + self.FLOP_LARGE * max(flops - self.FLOP_KNEE, 0.0)
 
     def direct(self, cost) -> float:

@@ -383,21 +383,18 @@ class PetscSchwarzSolver(PreconditionedCG):
         self.timings["pc_setup"] += time.perf_counter() - t1
         self.operator = _Operator(self._coarse_size)
 
-    def _ksp_solve(self, tol: float, maxiter: int, warm: bool, checkpoint: tuple[int, float] | None = None,
-                   bnorm: float = 0.0):
-        """KSP solve; ``checkpoint=(k, bound)``: give up when ‖r_k‖/‖b‖ > bound (krylov.pcg's rule)."""
+    def _ksp_solve(self, tol: float, maxiter: int, warm: bool, bounds=None, bnorm: float = 0.0):
+        """KSP solve; ``bounds``: give up when ‖r_k‖/‖b‖ > bounds[k] (krylov.pcg's rule)."""
         ksp = self.ksp
         PETSc = self.PETSc
         ksp.setTolerances(rtol=tol, atol=0.0, divtol=DIVERGENCE, max_it=maxiter)
         ksp.setInitialGuessNonzero(warm)
         ksp.setConvergenceHistory(length=min(maxiter + 1, HISTORY_MAX), reset=True)
-        if checkpoint is not None and bnorm > 0:
-            k0, bound = checkpoint
-
-            def converged(ksp, its, rnorm):  # the default test (zero initial guess: r₀ = b) plus the checkpoint
+        if bounds is not None and bnorm > 0:
+            def converged(ksp, its, rnorm):  # the default test (zero initial guess: r₀ = b) plus the bounds
                 if rnorm <= tol * bnorm:
                     return PETSc.KSP.ConvergedReason.CONVERGED_RTOL
-                if its >= maxiter or (its == k0 and rnorm > bound * bnorm):
+                if its >= maxiter or (its < len(bounds) and rnorm > bounds[its] * bnorm):
                     return PETSc.KSP.ConvergedReason.DIVERGED_MAX_IT
                 return PETSc.KSP.ConvergedReason.ITERATING
             ksp.setConvergenceTest(converged)
@@ -405,7 +402,7 @@ class PetscSchwarzSolver(PreconditionedCG):
         try:
             ksp.solve(self._b, self._x)
         finally:
-            if checkpoint is not None and bnorm > 0:
+            if bounds is not None and bnorm > 0:
                 ksp.setConvergenceTest(None)  # back to KSPConvergedDefault
         self.timings["ksp_solve"] += time.perf_counter() - t0
         its = int(ksp.getIterationNumber()) if self.kind[0] != "direct" else 0
@@ -492,9 +489,8 @@ class PetscSchwarzSolver(PreconditionedCG):
         setup = time.perf_counter() - t0
         n = self.layout.n
         maxiter = cap if lagged else (p.cg_max_iterations or 10 * n)
-        checkpoint = self._lag_checkpoint(cap) if lagged else None
-        its, reason, history, lmin, lmax = self._ksp_solve(tol, maxiter, warm=False, checkpoint=checkpoint,
-                                                           bnorm=bnorm)
+        bounds = self._lag_bounds(cap) if lagged else None
+        its, reason, history, lmin, lmax = self._ksp_solve(tol, maxiter, warm=False, bounds=bounds, bnorm=bnorm)
         residuals = list(history / bnorm) if bnorm > 0 else [0.0]
         converged = reason > 0
         if lagged and not converged:  # stale: rebuild for H, continue from x
