@@ -120,10 +120,24 @@ def _surrogate(B: sp.csr_matrix) -> sp.csc_matrix:
     return (B + sp.diags(deg + 1.0 + eps)).tocsc()
 
 
+SUPERNODAL_DEGREE = 6.0  # mean entries per column of the surrogate from which it is factorized supernodally
+
+
 def _factor_column_counts(S: sp.csc_matrix) -> np.ndarray:
-    """Column counts of the Cholesky factor of S under the solver's own fill-reducing ordering."""
+    """Column counts of the Cholesky factor of S under the solver's own fill-reducing ordering.
+
+    Graphs with dense neighbourhoods (3D surveys: ≥ ``SUPERNODAL_DEGREE`` entries per column) fill
+    in heavily, and CHOLMOD's supernodal factorization (BLAS-3) is far faster there than the
+    simplicial one (3D survey 32x32x32: 0.8 vs 3.7 s; 45x45x45 ~25 s simplicial); its padding is
+    left out by counting the numerically nonzero entries (S's values are generic, so fill does not
+    cancel). Sparse graphs stay simplicial, which is faster for them (262k-pose model problem:
+    0.05 vs 0.16 s). Both give the same counts."""
     if SPARSE_BACKEND == "cholmod":
         from sksparse.cholmod import cholesky
+        if S.nnz >= SUPERNODAL_DEGREE * S.shape[0]:
+            L = sp.csc_matrix(cholesky(S, mode="supernodal").L())
+            col = np.repeat(np.arange(L.shape[1]), np.diff(L.indptr))
+            return np.bincount(col[L.data != 0], minlength=L.shape[1])
         L = sp.csc_matrix(cholesky(S, mode="simplicial").LD())  # the pattern of L (D on its diagonal)
         return np.diff(L.indptr)
     lu = spla.splu(S, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})

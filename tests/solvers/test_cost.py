@@ -39,3 +39,18 @@ def test_a_chain_has_no_fill():
     A = (sp.kron(B, np.ones((d, d))) + 10 * sp.eye(n * d)).tocsr()
     cost = cholesky_cost(A, np.arange(n + 1) * d)
     assert cost.fill == pytest.approx(1.0, rel=0.05)
+
+
+def test_supernodal_and_simplicial_surrogates_give_the_same_counts():
+    if SPARSE_BACKEND != "cholmod":
+        pytest.skip("CHOLMOD only")
+    from gtsam_schwarz.solvers import cost
+
+    A, offsets = block_grid(30, 3)
+    B = cost.vertex_pattern(A, offsets) + sp.csr_matrix(cost.vertex_pattern(A, offsets) @ cost.vertex_pattern(A, offsets))
+    S = cost._surrogate(sp.csr_matrix(B))  # two-hop neighbourhoods: ≥ 6 entries per column
+    assert S.nnz >= cost.SUPERNODAL_DEGREE * S.shape[0]
+    supernodal = cost._factor_column_counts(S)
+    from sksparse.cholmod import cholesky
+    simplicial = np.diff(sp.csc_matrix(cholesky(S, mode="simplicial").LD()).indptr)
+    assert np.array_equal(supernodal, simplicial)
