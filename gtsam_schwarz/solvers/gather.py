@@ -13,10 +13,21 @@ class SparsityPattern:
         self.shape = A.shape
         self.indptr = A.indptr.copy()
         self.indices = A.indices.copy()
+        # read-only pattern arrays (the linearizer's fixed pattern of H) that matched: the same
+        # objects again match without comparing their contents
+        self._same = (A.indptr, A.indices) if not (A.indptr.flags.writeable or A.indices.flags.writeable) else None
 
     def matches(self, A: sp.spmatrix) -> bool:
-        return (isinstance(A, sp.csr_matrix) and A.shape == self.shape and A.has_sorted_indices
-                and np.array_equal(A.indptr, self.indptr) and np.array_equal(A.indices, self.indices))
+        if not (isinstance(A, sp.csr_matrix) and A.shape == self.shape and A.has_sorted_indices):
+            return False
+        same = self._same
+        if same is not None and A.indptr is same[0] and A.indices is same[1]:
+            return True
+        if np.array_equal(A.indptr, self.indptr) and np.array_equal(A.indices, self.indices):
+            if not (A.indptr.flags.writeable or A.indices.flags.writeable):
+                self._same = (A.indptr, A.indices)
+            return True
+        return False
 
 
 _shared: list = [None]  # the last pattern built: the gathers of one matrix share one copy of it

@@ -22,8 +22,14 @@ SPARSE_BACKEND = ("cholmod" if HAVE_CHOLMOD and os.environ.get("GTSAM_SCHWARZ_SP
 
 
 def _csc(K: sp.spmatrix) -> sp.csc_matrix:
-    # K is symmetric: the transpose of its CSR form is its CSC form, without a conversion
-    return K.T if sp.isspmatrix_csr(K) else sp.csc_matrix(K)
+    # K is symmetric: the transpose of its CSR form is its CSC form, without a conversion (and
+    # with the same sorted-indices flag, so CHOLMOD's wrapper does not check it again)
+    if sp.isspmatrix_csr(K):
+        sorted_ = K.has_sorted_indices
+        K = K.T
+        K.has_sorted_indices = sorted_
+        return K
+    return sp.csc_matrix(K)
 
 
 class SparseCholesky:
