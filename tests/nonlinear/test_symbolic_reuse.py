@@ -192,3 +192,37 @@ def test_a_lagged_solve_falling_behind_the_fresh_rate_is_given_up_early():
     fresh = PreconditionedCG(solver.params, lin.offsets, lin.translation_mask()).solve(
         H2, g, 1e-8, lambda: lin.geometry(state))
     assert second.iterations < k + fresh.iterations + 10 < cap + fresh.iterations  # gave up at k, not at the cap
+
+
+def _dense_extension(H, ext, rows, cols, vals, nc):
+    """Reference Φ: interface values, interior rows −A_II⁻¹ A_IΓ Φ_Γ by a dense solve."""
+    n = H.shape[0]
+    Phi = np.zeros((n, nc))
+    np.add.at(Phi, (rows, cols), vals)
+    A = H.toarray()
+    I, G = ext.interior, ext.gamma
+    Phi[I] = -np.linalg.solve(A[np.ix_(I, I)], A[np.ix_(I, G)] @ Phi[G])
+    return Phi
+
+
+def test_extension_with_cancelling_products_and_in_column_blocks_equals_a_dense_solve(two_points):
+    """Φ_Γ values that make whole columns of A_IΓ Φ_Γ vanish (entries dropped by the sparse product,
+    positions found anew), and the extension in blocks of one column: both equal a dense solve."""
+    from gtsam_schwarz.coarse import coarse_columns
+
+    km, H1, H2 = two_points
+    dec = decompose(GraphStructure.from_matrix(H1, km.offsets), 3, "segments", 1)
+    iface = find_interface(dec)
+    rows, cols, vals, _, col_subdomains = coarse_columns(dec, iface, "gdsw", None, True, km.translation_mask())
+    nc = col_subdomains.shape[0]
+    ext = HarmonicExtension(dec, iface)
+    ext(H1, rows, cols, vals, col_subdomains)  # the plan and the structural positions
+    zeroed = np.where(cols % 3 == 0, 0.0, vals)  # a third of the columns vanish: products cancel to 0
+    Phi, _ = ext(H2, rows, cols, zeroed, col_subdomains)
+    ref = _dense_extension(H2, ext, rows, cols, zeroed, nc)
+    assert np.abs(Phi.tocsr().toarray() - ref).max() <= 1e-9 * np.abs(ref).max()
+    blocked = HarmonicExtension(dec, iface, block_columns=1)
+    Phi_b, A0_b = blocked(H2, rows, cols, vals, col_subdomains)
+    ref = _dense_extension(H2, ext, rows, cols, vals, nc)
+    assert np.abs(Phi_b.tocsr().toarray() - ref).max() <= 1e-9 * np.abs(ref).max()
+    assert np.allclose(A0_b.toarray(), ref.T @ H2.toarray() @ ref, rtol=1e-8, atol=1e-9 * np.abs(A0_b).max())
