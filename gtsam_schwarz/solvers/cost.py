@@ -120,15 +120,16 @@ def _surrogate(B: sp.csr_matrix) -> sp.csc_matrix:
     return (B + sp.diags(deg + 1.0 + eps)).tocsc()
 
 
-SUPERNODAL_DEGREE = 6.0  # mean entries per column of the surrogate from which it is factorized supernodally
+SUPERNODAL_DEGREE = 4.5  # mean entries per column of the surrogate from which it is factorized supernodally
 
 
 def _factor_column_counts(S: sp.csc_matrix) -> np.ndarray:
     """Column counts of the Cholesky factor of S under the solver's own fill-reducing ordering.
 
-    Graphs with dense neighbourhoods (3D surveys: ≥ ``SUPERNODAL_DEGREE`` entries per column) fill
-    in heavily, and CHOLMOD's supernodal factorization (BLAS-3) is far faster there than the
-    simplicial one (3D survey 32x32x32: 0.8 vs 3.7 s; 45x45x45 ~25 s simplicial); its padding is
+    Graphs with dense neighbourhoods (surveys: ≥ ``SUPERNODAL_DEGREE`` entries per column; 2D
+    lawnmowers have 5, 3D surveys 7) fill in heavily, and CHOLMOD's supernodal factorization (BLAS-3)
+    is faster there than the simplicial one (3D survey 32x32x32: 0.8 vs 3.7 s; 45x45x45 ~25 s
+    simplicial; 2D lawnmower 600x600: 1.9 vs 2.3 s); its padding is
     left out by counting the numerically nonzero entries (S's values are generic, so fill does not
     cancel). Sparse graphs stay simplicial, which is faster for them (262k-pose model problem:
     0.05 vs 0.16 s). Both give the same counts."""

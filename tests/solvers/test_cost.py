@@ -48,7 +48,7 @@ def test_supernodal_and_simplicial_surrogates_give_the_same_counts():
 
     A, offsets = block_grid(30, 3)
     B = cost.vertex_pattern(A, offsets) + sp.csr_matrix(cost.vertex_pattern(A, offsets) @ cost.vertex_pattern(A, offsets))
-    S = cost._surrogate(sp.csr_matrix(B))  # two-hop neighbourhoods: ≥ 6 entries per column
+    S = cost._surrogate(sp.csr_matrix(B))  # two-hop neighbourhoods: more entries per column than the threshold
     assert S.nnz >= cost.SUPERNODAL_DEGREE * S.shape[0]
     supernodal = cost._factor_column_counts(S)
     from sksparse.cholmod import cholesky
