@@ -707,9 +707,12 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
     # ---- translations ---------------------------------------------------------------------
     # the BetweenFactor translation error lives in the frame R_i R_ij: W = (R_i R_ij) Ω_tt (R_i R_ij)ᵀ
     c = np.einsum("kab,kb->ka", rotations[i], t_meas)
-    isotropic = scalar and bool(np.all(W_loc[:, 0, 1] == 0) and np.all(W_loc[:, 1, 0] == 0)
-                                and np.all(W_loc[:, 0, 0] == W_loc[:, 1, 1]))
-    if isotropic:  # W = R (wI) Rᵀ = wI: x and y decouple, one scalar Laplacian, two right-hand sides
+    off_diagonal = ~np.eye(d, dtype=bool)
+    isotropic = direct_path and bool(np.all(W_loc[:, off_diagonal] == 0)
+                                     and np.all(W_loc[:, np.arange(d), np.arange(d)] == W_loc[:, :1, :1].reshape(-1, 1)))
+    if isotropic:  # W = R (wI) Rᵀ = wI: the coordinates decouple, one scalar Laplacian, d right-hand sides
+        if not scalar:  # 3D: a one-unknown pattern of its own for the translations (rotations need 3×3
+            system = _BlockSystem(n, 1, i, j, anchors)  # blocks): 1/27 of the block system's flops
         w = W_loc[:, 0, 0]
         wc = w[:, None] * c
         b = np.stack([np.bincount(j, wc[:, a], minlength=n) - np.bincount(i, wc[:, a], minlength=n)
