@@ -471,7 +471,7 @@ def add_compare(sub) -> None:
     p.add_argument("file", help="g2o (VERTEX_SE2/EDGE_SE2, SE3:QUAT) or TORO (VERTEX2/EDGE2) file")
     _add_strict(p)
     p.add_argument("--subdomains", type=positive_int, default=None, metavar="N",
-                   help="number of subdomains for ours (default: about 500 poses each)")
+                   help="number of subdomains for ours (default: about 500 poses each in 2D, 64 in 3D)")
     p.add_argument("--partition", choices=PARTITIONS, default="auto",
                    help="how ours cuts the graph (default auto)")
     p.add_argument("--ground-truth", metavar="FILE.g2o|FILE.tum",
