@@ -86,7 +86,9 @@ def estimate_two_level(M, A) -> MemoryEstimate:
         # the gathered blocks (overlapping, A_II, A_IΓ, A_Γ·) with their source positions and one
         # shared copy of A's pattern
         "gathered matrices": MATRIX_BYTES * (local.nnz_A + A.nnz) + 4.0 * A.nnz,
-        "coarse basis": 12.0 * nnz_phi,
+        # Φ's CSR entries (8 + 4 bytes) and the extension's kept positions of A_IΓΦ_Γ's entries in the
+        # compressed right-hand side (int32, at most one per entry of Φ_I)
+        "coarse basis": 16.0 * nnz_phi,
         # A₀ and, while it is assembled, A_Γ·Φ (|Γ| × K at most)
         "coarse matrix": (16.0 * nc * nc if dense_coarse else 48.0 * nnz_A0) + 12.0 * len(ext.gamma) * K,
     }
