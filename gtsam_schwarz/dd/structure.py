@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ..util import sorted_unique
+from ..util import sorted_unique, vertex_pattern
 
 
 @dataclass(frozen=True)
@@ -32,11 +32,26 @@ class GraphStructure:
 
     @classmethod
     def from_matrix(cls, H: sp.spmatrix, offsets: np.ndarray) -> "GraphStructure":
-        """Edges from the block sparsity of H (vertex i ~ j iff block H_ij ≠ 0)."""
+        """Edges from the block sparsity of H (vertex i ~ j iff block H_ij ≠ 0).
+
+        H's fixed pattern holds whole blocks: then the vertex pattern is read from the first row of
+        every vertex (``util.vertex_pattern``, a 36th of the entries for Pose3), accepted when its
+        whole blocks account for every stored entry of H and it is symmetric; any other pattern
+        (blocks with dropped entries) takes every entry's vertex pair."""
         offsets = np.asarray(offsets, dtype=np.int64)
         nv = len(offsets) - 1
-        owner = np.repeat(np.arange(nv), np.diff(offsets))
-        C = sp.coo_matrix(H)
+        H = sp.csr_matrix(H)
+        dims = np.diff(offsets)
+        if H.has_sorted_indices:
+            V = vertex_pattern(H, offsets)
+            rows = np.repeat(np.arange(nv), np.diff(V.indptr))
+            upper = V.indices > rows
+            if int(np.sum(dims[rows] * dims[V.indices])) == H.nnz and _symmetric(V, rows):
+                # rows ascending, sorted columns within a row: the upper pairs come out sorted
+                edges = np.stack([rows[upper], V.indices[upper].astype(np.int64)], axis=1)
+                return cls(offsets=offsets, edges=edges, odometry=edges[:, 1] == edges[:, 0] + 1)
+        owner = np.repeat(np.arange(nv), dims)
+        C = H.tocoo()
         u, v = owner[C.row], owner[C.col]
         keep = u < v
         pairs = sorted_unique(u[keep] * np.int64(nv) + v[keep])
@@ -49,3 +64,11 @@ class GraphStructure:
         nv = self.n_vertices
         ones = np.ones(2 * len(e))
         return sp.csr_matrix((ones, (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(nv, nv))
+
+
+def _symmetric(V: sp.csr_matrix, rows: np.ndarray) -> bool:
+    """Whether the vertex pattern V (sorted CSR, ``rows`` the row of each entry) is symmetric."""
+    n = V.shape[0]
+    key = rows.astype(np.int64) * n + V.indices
+    transposed = np.sort(V.indices.astype(np.int64) * n + rows)
+    return bool(np.array_equal(key, transposed))

@@ -257,8 +257,9 @@ class AutoSolver(LinearSolver):
     def decomposition(self):
         return self.chosen.decomposition if self.chosen is not None else None
 
-    def choose(self, H) -> LinearSolver:
-        """Predict both costs and keep the cheaper solver (its name in ``choice``, why in ``reason``)."""
+    def choose(self, H, geometry: Geometry | None = None) -> LinearSolver:
+        """Predict both costs and keep the cheaper solver (its name in ``choice``, why in ``reason``).
+        ``geometry``: the poses of the first solve (its coarse columns are then computed once)."""
         direct = cholesky_cost(H, self.offsets)
         t_direct = self.model.direct(direct)
         params = LinearSolverParams(**{**vars(self.params), "preconditioner": self.schwarz_name})
@@ -279,7 +280,7 @@ class AutoSolver(LinearSolver):
         M.setup(H)
         fits, refusal = True, None
         if hasattr(M, "extension"):  # two-level: its own estimate (coarse columns, Φ, fill)
-            est = estimate_two_level(M, H)
+            est = estimate_two_level(M, H, geometry() if geometry is not None and M.uses_geometry else None)
             t_schwarz = self.model.two_level(est, H.nnz)
             try:
                 M.memory = fit_memory(M, H, params.memory_limit, self.schwarz_name, est)
@@ -314,7 +315,7 @@ class AutoSolver(LinearSolver):
     def solve(self, H, rhs, tol, geometry):
         t0 = time.perf_counter()
         if self.chosen is None:
-            self.choose(H)  # the analysis counts as setup of the first solve
+            self.choose(H, geometry)  # the analysis counts as setup of the first solve
         choosing = time.perf_counter() - t0
         result = self.chosen.solve(H, rhs, tol, geometry)
         result.setup_seconds += choosing

@@ -58,9 +58,10 @@ class MemoryEstimate:
         return ", ".join(f"{k} {gib(OVERHEAD * v)}" for k, v in self.parts.items())
 
 
-def estimate_two_level(M, A) -> MemoryEstimate:
+def estimate_two_level(M, A, geometry=None) -> MemoryEstimate:
     """The parts of a :class:`~gtsam_schwarz.schwarz.TwoLevelSchwarz`'s memory for matrix A (after
-    its ``setup``: interface and extension plan known, nothing numeric yet)."""
+    its ``setup``: interface and extension plan known, nothing numeric yet). With the poses
+    (``geometry``) of the coming build, its coarse columns are computed once, for both."""
     dec, ext = M.decomposition, M.extension
     offsets = dec.structure.offsets
     A = sp.csr_matrix(A)
@@ -72,7 +73,8 @@ def estimate_two_level(M, A) -> MemoryEstimate:
     n_block = int(np.diff(offsets)[vsets.indices].sum())
     nI = len(ext.interior)
     rows, cols, _, column_component, col_subdomains = coarse_columns(
-        dec, M.interface, M.kind, None, M.rotation, M.translation_mask)
+        dec, M.interface, M.kind, geometry if M.uses_geometry else None, M.rotation, M.translation_mask,
+        keep=geometry is not None)
     nc = len(column_component)
     K_sub = np.diff(sp.csr_matrix(col_subdomains.T).indptr) if nc else np.zeros(dec.n_subdomains, np.int64)
     nnz_phi = float(np.sum(K_sub[ext.sub])) + len(rows)
@@ -102,11 +104,12 @@ def estimate_two_level(M, A) -> MemoryEstimate:
     return est
 
 
-def fit_memory(M, A, limit=None, name: str = "Schwarz", est: MemoryEstimate | None = None) -> MemoryEstimate:
+def fit_memory(M, A, limit=None, name: str = "Schwarz", est: MemoryEstimate | None = None,
+               geometry=None) -> MemoryEstimate:
     """Estimate M's peak (or take ``est``) and make it fit ``limit`` (bytes; None: the memory
     available now): extend in blocks of columns when the full right-hand side would not fit, and
     raise :class:`InsufficientMemoryError` when even one column at a time would not."""
-    est = est if est is not None else estimate_two_level(M, A)
+    est = est if est is not None else estimate_two_level(M, A, geometry)
     est.limit = available_memory(limit)
     for low in (False, True):  # keep the factorizations if possible; else one phase at a time
         if est.peak(None, low) <= est.limit:

@@ -109,7 +109,7 @@ class TwoLevelSchwarz(SumOperator):
         if self.extension is None:
             self.setup(A)
         if self.memory is None:  # before the heavy work: estimate the peak, adapt or stop
-            self.memory = fit_memory(self, A, self.memory_limit, self.kind)
+            self.memory = fit_memory(self, A, self.memory_limit, self.kind, geometry=geometry)
         low = self.memory.low_memory
         self.extension.block_columns = self.memory.block_columns
         self.extension.keep_factors = not low

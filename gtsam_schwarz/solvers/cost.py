@@ -16,6 +16,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .sparse import SPARSE_BACKEND
+from ..util import vertex_pattern  # noqa: F401 (re-exported: solvers.vertex_pattern)
 
 
 @dataclass(frozen=True)
@@ -31,42 +32,6 @@ class CholeskyCost:
     def fill(self) -> float:
         """nnz(L) / nnz(tril(A)): 1 means no fill."""
         return self.nnz_L / max((self.nnz_A + self.n_dofs) / 2, 1)
-
-
-def vertex_pattern(A: sp.spmatrix, offsets: np.ndarray) -> sp.csr_matrix:
-    """The vertex-level pattern of a block matrix (1 where block (u, v) is stored).
-
-    Reads only the first row of every vertex and, in it, the first column of every block: A's
-    pattern holds whole blocks (the fixed pattern of H does), so nothing else is needed. With one
-    block size d everywhere that is every d-th entry of those rows, and the CSR arrays are written
-    directly (no triplet conversion)."""
-    offsets = np.asarray(offsets, dtype=np.int64)
-    nv = len(offsets) - 1
-    A = sp.csr_matrix(A)
-    dims = np.diff(offsets)
-    first = offsets[:-1]
-    starts = A.indptr[first].astype(np.int64)
-    lengths = A.indptr[first + 1] - starts
-    if nv and A.has_sorted_indices and np.all(dims == dims[0]):
-        step = int(dims[0])
-        count = lengths // step
-        indptr = np.zeros(nv + 1, dtype=np.int64)
-        np.cumsum(count, out=indptr[1:])
-        pos = np.repeat(starts - step * indptr[:-1], count) + step * np.arange(indptr[-1])
-        cols = A.indices[pos] // step
-        if np.array_equal(cols * step, A.indices[pos]) and indptr[-1] * step == lengths.sum():  # whole blocks
-            itype = np.int32 if max(nv, len(cols)) < 2**31 else np.int64
-            B = sp.csr_matrix((np.ones(len(cols)), cols.astype(itype), indptr.astype(itype)), shape=(nv, nv))
-            B.has_sorted_indices = True
-            return B
-    owner = np.repeat(np.arange(nv), dims)
-    pos = np.repeat(starts - np.cumsum(lengths) + lengths, lengths) + np.arange(int(lengths.sum()))
-    cols = A.indices[pos]
-    rows = np.repeat(np.arange(nv), lengths)
-    keep = cols == first[owner[cols]]
-    B = sp.csr_matrix((np.ones(int(keep.sum())), (rows[keep], owner[cols[keep]])), shape=(nv, nv))
-    B.data[:] = 1.0
-    return B
 
 
 def cholesky_cost(A: sp.spmatrix, offsets: np.ndarray) -> CholeskyCost:

@@ -23,6 +23,32 @@ def test_structure_finds_odometry_and_loop_closures():
     assert st.edges[~st.odometry].tolist() == [[0, 8], [8, 16], [16, 24]]
 
 
+def test_structure_from_whole_blocks_matches_every_entry():
+    """The fast path (vertex pattern from each vertex's first row) gives the edges that reading
+    every entry gives; a pattern whose blocks are not whole (one coupling stored in a later row
+    only) falls back to reading every entry and keeps that edge."""
+    import scipy.sparse as sp
+
+    from gtsam_schwarz import lawnmower
+    prob = lawnmower(6, 7, seed=1)
+    km = KeyMap.from_graph(prob.graph, prob.initial)
+    H = export_linear_system(prob.graph.linearize(prob.initial), km).H.tocsr()
+    H.sort_indices()
+    fast = GraphStructure.from_matrix(H, km.offsets)
+    C = H.tocoo()
+    owner = np.repeat(np.arange(km.offsets.size - 1), np.diff(km.offsets))
+    u, v = owner[C.row], owner[C.col]
+    expected = np.unique(np.stack([u[u < v], v[u < v]], 1), axis=0)
+    assert np.array_equal(fast.edges, expected)
+    # a coupling between vertices 0 and 9 in the second dof row of 0 (and its mirror) only
+    extra = sp.coo_matrix(([1e-3, 1e-3], ([km.offsets[0] + 1, km.offsets[9] + 1],
+                                          [km.offsets[9] + 1, km.offsets[0] + 1])), shape=H.shape)
+    H2 = (H + extra).tocsr()
+    H2.sort_indices()
+    edges = GraphStructure.from_matrix(H2, km.offsets).edges.tolist()
+    assert [0, 9] in edges and len(edges) == len(expected) + ([0, 9] not in expected.tolist())
+
+
 def test_one_subdomain_per_loop():
     """With N = loops, subdomain k holds exactly loop k's odometry edges and its loop closure."""
     L, P = 4, 3
