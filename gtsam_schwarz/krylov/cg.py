@@ -3,6 +3,11 @@
 The CG coefficients α_k, β_k define the Lanczos tridiagonal matrix T of the preconditioned
 operator M⁻¹A; its extreme eigenvalues estimate λmin/λmax (and κ = λmax/λmin) as reported in the
 paper's tables.
+
+CG also knows how far the quadratic model ½xᵀAx − bᵀx has come down: each step lowers it by
+½α_k γ_k (γ_k = r_kᵀM⁻¹r_k), and what is left, ½‖x* − x_k‖²_A = ½ r_kᵀA⁻¹r_k, is at most
+½γ_k/λmin(M⁻¹A) (Strakoš and Tichý's energy-error estimates). A Newton solver whose whole step would
+lower the model by less than its tolerance can stop CG there (``decrement_tol``).
 """
 
 from __future__ import annotations
@@ -21,6 +26,9 @@ class CGInfo:
     lambda_min: float = float("nan")
     lambda_max: float = float("nan")
     reason: str = ""
+    model_decrease: float = float("nan")  # ½xᵀAx − bᵀx at 0 minus at the returned x
+    decrement_bound: float = float("nan")  # with ``decrement_tol``: the bound on the whole decrease at the stop
+    decrement_stop: bool = False  # stopped because the whole model decrease is below ``decrement_tol``
 
     @property
     def condition(self) -> float:
@@ -52,8 +60,13 @@ def _apply(op, x):
 STOPPING_NORMS = ("residual", "natural")
 
 
+DECREMENT_MIN_ITERATIONS = 5  # Ritz values before this are too rough for the bound
+DECREMENT_SAFETY = 10.0  # the Ritz λmin is an upper estimate of λmin: the left-over is counted 10×
+
+
 def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
-        callback=None, norm: str = "residual", bounds=None) -> tuple[np.ndarray, CGInfo]:
+        callback=None, norm: str = "residual", bounds=None,
+        decrement_tol: float | None = None) -> tuple[np.ndarray, CGInfo]:
     """Solve A x = b (A SPD) by CG preconditioned with M ≈ A⁻¹ (SPD).
 
     Stops when ‖b − A x‖₂ ≤ tol·‖b‖₂ (the paper's relative tolerance) or after ``maxiter``
@@ -66,6 +79,11 @@ def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
     ``bounds`` (a sequence) gives up (not converged) when an iteration k < len(bounds) ends with
     ‖r_k‖₂/‖b‖₂ above ``bounds[k]``: a caller that expects a convergence rate stops a solve that
     falls behind it.
+
+    ``decrement_tol`` stops (``decrement_stop``, not ``converged``) from iteration
+    ``DECREMENT_MIN_ITERATIONS`` on once the model decrease reached plus ``DECREMENT_SAFETY`` × the
+    estimated left-over ½γ_k/λ̂min (λ̂min: the smallest Ritz value so far) is at most
+    ``decrement_tol``: the exact solution would lower the model by less than that.
     """
     if norm not in STOPPING_NORMS:
         raise ValueError(f"unknown stopping norm {norm!r}; choose one of {', '.join(STOPPING_NORMS)}")
@@ -83,6 +101,9 @@ def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
         return np.zeros(n), info
     rnorm = float(np.linalg.norm(r))
     info.residuals.append(rnorm / bnorm)
+    # φ(0) − φ(x0) = bᵀx0 − ½x0ᵀAx0 = ½x0ᵀ(b + r0)
+    decrease = 0.0 if x0 is None else 0.5 * float(x @ (b + r))
+    info.model_decrease = decrease
     if rnorm <= tol * bnorm:
         info.converged, info.reason = True, "initial guess"
         return x, info
@@ -104,6 +125,8 @@ def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
         x += alpha * p
         r -= alpha * Ap
         alphas.append(alpha)
+        decrease += 0.5 * alpha * rz
+        info.model_decrease = decrease
         rnorm = float(np.linalg.norm(r))
         info.residuals.append(rnorm / bnorm)
         info.iterations = k
@@ -125,6 +148,15 @@ def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
             z = _apply(M, r)
             rz_new = float(r @ z)
         beta = rz_new / rz
+        if decrement_tol is not None and k >= DECREMENT_MIN_ITERATIONS and np.isfinite(rz_new) and rz_new >= 0:
+            ritz_min = lanczos_extremes(alphas, betas)[0]
+            if ritz_min > 0:
+                bound = decrease + DECREMENT_SAFETY * 0.5 * rz_new / ritz_min
+                info.decrement_bound = bound
+                if bound <= decrement_tol:
+                    info.decrement_stop = True
+                    info.reason = f"whole model decrease at most {bound:.3e} <= {decrement_tol:.3e}"
+                    break
         betas.append(beta)
         rz = rz_new
         p *= beta

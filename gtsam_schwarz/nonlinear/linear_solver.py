@@ -35,7 +35,11 @@ class LinearSolver:
     choice = ""  # the solver that runs (for "auto": the one it chose)
     reason = ""  # why (for "auto": the predicted costs)
 
-    def solve(self, H: sp.csr_matrix, rhs: np.ndarray, tol: float, geometry: Geometry) -> SolveResult:
+    def solve(self, H: sp.csr_matrix, rhs: np.ndarray, tol: float, geometry: Geometry,
+              decrement_tol: float | None = None) -> SolveResult:
+        """H x = rhs to relative residual ``tol``. An iterative solver may stop earlier once the exact
+        x would lower the quadratic model ½xᵀHx − rhsᵀx by at most ``decrement_tol`` (then
+        ``decrement_stop``); a direct one ignores it."""
         raise NotImplementedError
 
     def moved(self, step_max: float) -> None:
@@ -50,7 +54,7 @@ class DirectSolver(LinearSolver):
     def __init__(self):
         self._pattern = self._factor = None
 
-    def solve(self, H, rhs, tol, geometry):
+    def solve(self, H, rhs, tol, geometry, decrement_tol=None):
         t0 = time.perf_counter()
         H = sp.csr_matrix(H)
         if self._factor is None or not self._pattern.matches(H):
@@ -147,30 +151,32 @@ class PreconditionedCG(LinearSolver):
             return M
         return M.update(H, geometry() if M.uses_geometry else None)
 
-    def solve(self, H, rhs, tol, geometry):
-        """Preconditioned CG to relative residual ``tol``. A lagged preconditioner that lets CG
-        exceed its iteration cap is rebuilt for H and CG continues from where it stopped."""
+    def solve(self, H, rhs, tol, geometry, decrement_tol=None):
+        """Preconditioned CG to relative residual ``tol`` (or until the step's whole model decrease is
+        bounded by ``decrement_tol``). A lagged preconditioner that lets CG exceed its iteration cap
+        is rebuilt for H and CG continues from where it stopped."""
         p = self.params
         t0 = time.perf_counter()
         cap = self._lag_cap()
         M = self.preconditioner(H, geometry, lag=cap is not None)
         setup = time.perf_counter() - t0
         x, info = pcg(H, rhs, M, tol=tol, maxiter=cap if cap is not None else p.cg_max_iterations,
-                      bounds=self._lag_bounds(cap) if cap is not None else None)
+                      bounds=self._lag_bounds(cap) if cap is not None else None, decrement_tol=decrement_tol)
         iterations, residuals = info.iterations, list(info.residuals)
         lagged = cap is not None
-        if lagged and not info.converged:  # stale: rebuild for H, continue from x
+        if lagged and not (info.converged or info.decrement_stop):  # stale: rebuild for H, continue from x
             t2 = time.perf_counter()
             M = self.preconditioner(H, geometry)
             setup += time.perf_counter() - t2
-            x, info = pcg(H, rhs, M, tol=tol, maxiter=p.cg_max_iterations, x0=x)
+            x, info = pcg(H, rhs, M, tol=tol, maxiter=p.cg_max_iterations, x0=x, decrement_tol=decrement_tol)
             iterations += info.iterations
             residuals += info.residuals[1:]
             self._moved = 0.0  # the warm-started count is no reference: keep the previous one
-        elif self._rebuilt:
+        elif self._rebuilt and not info.decrement_stop:  # (a solve stopped on its decrement is no reference count)
             self._cg_after_build, self._moved = info.iterations, 0.0
             self._fresh_residuals = list(info.residuals)
         return SolveResult(x=x, iterations=iterations, converged=info.converged,
+                           decrement_stop=info.decrement_stop, decrement_bound=info.decrement_bound,
                            lambda_min=info.lambda_min, lambda_max=info.lambda_max,
                            residuals=residuals, tolerance=tol, setup_seconds=setup,
                            coarse_size=M.coarse_size, rebuilt=self._rebuilt, lagged=lagged)
@@ -312,12 +318,12 @@ class AutoSolver(LinearSolver):
         self.reason = facts
         return self.chosen
 
-    def solve(self, H, rhs, tol, geometry):
+    def solve(self, H, rhs, tol, geometry, decrement_tol=None):
         t0 = time.perf_counter()
         if self.chosen is None:
             self.choose(H, geometry)  # the analysis counts as setup of the first solve
         choosing = time.perf_counter() - t0
-        result = self.chosen.solve(H, rhs, tol, geometry)
+        result = self.chosen.solve(H, rhs, tol, geometry, decrement_tol=decrement_tol)
         result.setup_seconds += choosing
         return result
 

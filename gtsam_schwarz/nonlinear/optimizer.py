@@ -162,7 +162,8 @@ class SchwarzOptimizer:
         tol = self.forcing.tolerance(gnorm)
         t0 = time.perf_counter()
         result = self.linear_solver.solve(self._damped(system, lam), system.rhs, tol,
-                                          lambda: self.linearizer.geometry(self._state))
+                                          lambda: self.linearizer.geometry(self._state),
+                                          decrement_tol=self._decrement_tol())
         t1 = time.perf_counter()
         new_state = self.linearizer.retract(self._state, result.x)
         new_error = self.linearizer.error(new_state)
@@ -186,8 +187,31 @@ class SchwarzOptimizer:
             cg_tolerance=result.tolerance, lambda_min=result.lambda_min, lambda_max=result.lambda_max,
             coarse_size=result.coarse_size, preconditioner_rebuilt=result.rebuilt,
             preconditioner_lagged=result.lagged, cg_residuals=result.residuals,
+            decrement_stop=bool(getattr(result, "decrement_stop", False)),
             seconds={"linearize": seconds.get("linearize", 0.0), "export": seconds.get("export", 0.0),
                      "setup": result.setup_seconds, "cg": t1 - t0 - result.setup_seconds, "update": t2 - t1})
+
+    def _decrement_tol(self) -> float | None:
+        """The Newton-decrement rule: once the exact (damped) step would lower the quadratic model by
+        at most ``remaining_decrease_tol`` × error, nothing is left to gain; an iterative solver may
+        then stop CG early and the loop stops after that step (None: rule off)."""
+        p = self.nonlinear_params
+        error_rules = p.relative_error_tol > 0 or p.absolute_error_tol >= 0  # off: stop on the gradient only (the paper)
+        if p.newton_decrement and error_rules and p.remaining_decrease_tol > 0 and self._error > p.error_tol and np.isfinite(self._error):
+            return p.remaining_decrease_tol * self._error
+        return None
+
+    def _decrement_converged(self, record: IterationRecord, before: float, new_state) -> bool:
+        """After a step whose CG stopped on the decrement rule: keep it if it lowered the error, then
+        stop (converged). Returns False (the loop stops)."""
+        if np.isfinite(record.error) and record.error <= before:
+            record.accepted = True
+            self._accept(new_state, record)
+        self.converged = True
+        self.stop_reason = (f"Newton decrement: the exact step would lower the error by at most "
+                            f"{self.nonlinear_params.remaining_decrease_tol:g} x error (CG stopped after "
+                            f"{record.cg_iterations} iterations): converged")
+        return False
 
     def _accept(self, new_state, record: IterationRecord):
         self._state, self._error = new_state, record.error
@@ -257,6 +281,10 @@ class SchwarzOptimizer:
     def _gauss_newton(self, system: LinearSystem, gnorm: float, iteration: int) -> bool:
         before = self._error
         record, new_state = self._try_step(system, gnorm, 0.0, iteration, system.seconds)
+        if record.decrement_stop:
+            stop = self._decrement_converged(record, before, new_state)
+            self._log(record)
+            return stop
         record.accepted = bool(np.isfinite(record.error) and record.error <= before)
         self._log(record)
         if not record.accepted:
@@ -275,6 +303,10 @@ class SchwarzOptimizer:
         while True:
             record, new_state = self._try_step(system, gnorm, self._lambda, iteration, seconds)
             seconds = {}
+            if record.decrement_stop:
+                stop = self._decrement_converged(record, before, new_state)
+                self._log(record)
+                return stop
             ok = (np.isfinite(record.error) and record.error < before
                   and record.model_fidelity >= d.min_model_fidelity)
             record.accepted = bool(ok)

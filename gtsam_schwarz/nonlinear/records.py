@@ -25,6 +25,8 @@ class SolveResult:
     coarse_size: int = 0
     rebuilt: bool = True  # the preconditioner's numbers were recomputed for this matrix
     lagged: bool = False  # CG started with the previous preconditioner (lagged)
+    decrement_stop: bool = False  # CG stopped early: the exact step would lower the model by < decrement_tol
+    decrement_bound: float = float("nan")  # that bound on the exact step's model decrease
 
 
 @dataclass
@@ -52,6 +54,7 @@ class IterationRecord(Mapping):
     cg_residuals: list
     accepted: bool = False
     seconds: dict = field(default_factory=dict)  # per phase: linearize, export, setup, cg, update
+    decrement_stop: bool = False  # CG stopped once the exact step's model decrease was bounded below tolerance
 
     @staticmethod
     def _attr(key: str) -> str:

@@ -70,3 +70,37 @@ def test_pcg_bounds_give_up_only_when_behind():
     assert not behind.converged and behind.iterations == 4 and "behind" in behind.reason
     _, ahead = pcg(A, b, tol=1e-10, maxiter=600, bounds=[1e9] * 50)  # never above: the same solve
     assert ahead.converged and ahead.iterations == free.iterations
+
+
+def _laplacian_2d(m=30, shift=1e-3):
+    """A 2D grid Laplacian plus a small shift (slow CG, small λmin): a hard case for the bound."""
+    T = sp.diags([-np.ones(m - 1), 2 * np.ones(m), -np.ones(m - 1)], [-1, 0, 1])
+    I = sp.identity(m)
+    return (sp.kron(T, I) + sp.kron(I, T) + shift * sp.identity(m * m)).tocsr()
+
+
+@pytest.mark.parametrize("precondition", [False, True])
+def test_model_decrease_and_decrement_bound(precondition):
+    """CG's model decrease φ(0) − φ(x), φ(x) = ½xᵀAx − bᵀx, is tracked exactly (also from a warm start), and the
+    decrement bound never stops CG when the exact step's decrease ½bᵀA⁻¹b exceeds the tolerance;
+    it stops early when the tolerance is above it."""
+    A = _laplacian_2d()
+    b = np.random.default_rng(3).normal(size=A.shape[0])
+    M = Jacobi(A.shape[0]).update(A) if precondition else None
+    phi = lambda x: 0.5 * x @ (A @ x) - b @ x
+    decrement = 0.5 * b @ spla.spsolve(A.tocsc(), b)
+    x, full = pcg(A, b, M, tol=1e-10)
+    assert full.converged and full.model_decrease == pytest.approx(-phi(x), rel=1e-10)
+    assert full.model_decrease == pytest.approx(decrement, rel=1e-8)
+    x0 = 0.3 * x + 0.01
+    xw, warm = pcg(A, b, M, tol=1e-10, x0=x0, maxiter=3)
+    assert warm.model_decrease == pytest.approx(-phi(xw), rel=1e-10)
+    # a tolerance below the exact decrease: never stopped by the bound (it bounds from above)
+    _, below = pcg(A, b, M, tol=1e-10, decrement_tol=0.99 * decrement)
+    assert below.converged and not below.decrement_stop
+    assert below.decrement_bound >= below.model_decrease
+    # a tolerance above it: stopped early, with the decrease reached ≤ the exact one ≤ the bound
+    xs, above = pcg(A, b, M, tol=1e-10, decrement_tol=20 * decrement)
+    assert above.decrement_stop and not above.converged and above.iterations < full.iterations
+    assert above.model_decrease == pytest.approx(-phi(xs), rel=1e-10)
+    assert above.model_decrease <= decrement * (1 + 1e-12) <= above.decrement_bound

@@ -237,3 +237,25 @@ def test_mit_from_the_file_reaches_gtsam_tight_minimum_with_default_tolerances()
     assert ours.converged and "remaining decrease" in ours.stop_reason
     assert gtsam_rule.error() > ref * (1 + 1e-6)  # the case the check exists for
     assert ref * (1 - 1e-9) <= ours.error() <= ref * (1 + 1e-6)
+
+
+def test_newton_decrement_stops_the_last_solve_early():
+    """Once CG bounds the exact step's decrease below remaining_decrease_tol × error, the last solve
+    stops early and the loop after it: the final error is the fully solved run's within that bound."""
+    from gtsam_schwarz.problems.survey import survey3d
+
+    pb = survey3d(4, 10, 10)
+    runs = {}
+    for rule in (True, False):
+        opt = SchwarzOptimizer(pb.graph, pb.initial, SchwarzParams(preconditioner="rgdsw-linear", newton_decrement=rule,
+                                                                   remaining_decrease_tol=1e-5))
+        opt.optimize()
+        runs[rule] = opt
+    on, off = runs[True], runs[False]
+    assert on.converged and off.converged
+    assert "Newton decrement" in on.stop_reason and on.history[-1].decrement_stop
+    assert "Newton decrement" not in off.stop_reason and not any(h.decrement_stop for h in off.history)
+    cg_on, cg_off = on.summary()["cg_iterations"], off.summary()["cg_iterations"]
+    assert len(cg_on) == len(cg_off) and cg_on[:-1] == cg_off[:-1] and cg_on[-1] < cg_off[-1]
+    e_on, e_off = on.summary()["final_error"], off.summary()["final_error"]
+    assert abs(e_on - e_off) <= 1e-5 * e_off
