@@ -7,7 +7,8 @@ paper's tables.
 CG also knows how far the quadratic model ½xᵀAx − bᵀx has come down: each step lowers it by
 ½α_k γ_k (γ_k = r_kᵀM⁻¹r_k), and what is left, ½‖x* − x_k‖²_A = ½ r_kᵀA⁻¹r_k, is at most
 ½γ_k/λmin(M⁻¹A) (Strakoš and Tichý's energy-error estimates). A Newton solver whose whole step would
-lower the model by less than its tolerance can stop CG there (``decrement_tol``).
+lower the model by less than its tolerance can stop CG there (``decrement_tol``), once all but
+``decrement_left`` of that decrease is reached.
 """
 
 from __future__ import annotations
@@ -66,7 +67,7 @@ DECREMENT_SAFETY = 10.0  # the Ritz λmin is an upper estimate of λmin: the lef
 
 def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
         callback=None, norm: str = "residual", bounds=None,
-        decrement_tol: float | None = None) -> tuple[np.ndarray, CGInfo]:
+        decrement_tol: float | None = None, decrement_left: float | None = None) -> tuple[np.ndarray, CGInfo]:
     """Solve A x = b (A SPD) by CG preconditioned with M ≈ A⁻¹ (SPD).
 
     Stops when ‖b − A x‖₂ ≤ tol·‖b‖₂ (the paper's relative tolerance) or after ``maxiter``
@@ -81,9 +82,10 @@ def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
     falls behind it.
 
     ``decrement_tol`` stops (``decrement_stop``, not ``converged``) from iteration
-    ``DECREMENT_MIN_ITERATIONS`` on once the model decrease reached plus ``DECREMENT_SAFETY`` × the
-    estimated left-over ½γ_k/λ̂min (λ̂min: the smallest Ritz value so far) is at most
-    ``decrement_tol``: the exact solution would lower the model by less than that.
+    ``DECREMENT_MIN_ITERATIONS`` on once the model decrease reached plus the left-over, counted as
+    ``DECREMENT_SAFETY`` × ½γ_k/λ̂min (λ̂min: the smallest Ritz value so far), is at most
+    ``decrement_tol`` and that left-over at most ``decrement_left`` (if given): the exact solution
+    would lower the model by less than ``decrement_tol``, and x is within ``decrement_left`` of it.
     """
     if norm not in STOPPING_NORMS:
         raise ValueError(f"unknown stopping norm {norm!r}; choose one of {', '.join(STOPPING_NORMS)}")
@@ -151,9 +153,10 @@ def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
         if decrement_tol is not None and k >= DECREMENT_MIN_ITERATIONS and np.isfinite(rz_new) and rz_new >= 0:
             ritz_min = lanczos_extremes(alphas, betas)[0]
             if ritz_min > 0:
-                bound = decrease + DECREMENT_SAFETY * 0.5 * rz_new / ritz_min
+                left = DECREMENT_SAFETY * 0.5 * rz_new / ritz_min
+                bound = decrease + left
                 info.decrement_bound = bound
-                if bound <= decrement_tol:
+                if bound <= decrement_tol and (decrement_left is None or left <= decrement_left):
                     info.decrement_stop = True
                     info.reason = f"whole model decrease at most {bound:.3e} <= {decrement_tol:.3e}"
                     break

@@ -36,10 +36,10 @@ class LinearSolver:
     reason = ""  # why (for "auto": the predicted costs)
 
     def solve(self, H: sp.csr_matrix, rhs: np.ndarray, tol: float, geometry: Geometry,
-              decrement_tol: float | None = None) -> SolveResult:
+              decrement_tol: float | None = None, decrement_left: float | None = None) -> SolveResult:
         """H x = rhs to relative residual ``tol``. An iterative solver may stop earlier once the exact
-        x would lower the quadratic model ½xᵀHx − rhsᵀx by at most ``decrement_tol`` (then
-        ``decrement_stop``); a direct one ignores it."""
+        x would lower the quadratic model ½xᵀHx − rhsᵀx by at most ``decrement_tol`` and x is within
+        ``decrement_left`` of that (then ``decrement_stop``); a direct one ignores both."""
         raise NotImplementedError
 
     def moved(self, step_max: float) -> None:
@@ -54,7 +54,7 @@ class DirectSolver(LinearSolver):
     def __init__(self):
         self._pattern = self._factor = None
 
-    def solve(self, H, rhs, tol, geometry, decrement_tol=None):
+    def solve(self, H, rhs, tol, geometry, decrement_tol=None, decrement_left=None):
         t0 = time.perf_counter()
         H = sp.csr_matrix(H)
         if self._factor is None or not self._pattern.matches(H):
@@ -151,7 +151,7 @@ class PreconditionedCG(LinearSolver):
             return M
         return M.update(H, geometry() if M.uses_geometry else None)
 
-    def solve(self, H, rhs, tol, geometry, decrement_tol=None):
+    def solve(self, H, rhs, tol, geometry, decrement_tol=None, decrement_left=None):
         """Preconditioned CG to relative residual ``tol`` (or until the step's whole model decrease is
         bounded by ``decrement_tol``). A lagged preconditioner that lets CG exceed its iteration cap
         is rebuilt for H and CG continues from where it stopped."""
@@ -160,15 +160,16 @@ class PreconditionedCG(LinearSolver):
         cap = self._lag_cap()
         M = self.preconditioner(H, geometry, lag=cap is not None)
         setup = time.perf_counter() - t0
+        decrement = {"decrement_tol": decrement_tol, "decrement_left": decrement_left}
         x, info = pcg(H, rhs, M, tol=tol, maxiter=cap if cap is not None else p.cg_max_iterations,
-                      bounds=self._lag_bounds(cap) if cap is not None else None, decrement_tol=decrement_tol)
+                      bounds=self._lag_bounds(cap) if cap is not None else None, **decrement)
         iterations, residuals = info.iterations, list(info.residuals)
         lagged = cap is not None
         if lagged and not (info.converged or info.decrement_stop):  # stale: rebuild for H, continue from x
             t2 = time.perf_counter()
             M = self.preconditioner(H, geometry)
             setup += time.perf_counter() - t2
-            x, info = pcg(H, rhs, M, tol=tol, maxiter=p.cg_max_iterations, x0=x, decrement_tol=decrement_tol)
+            x, info = pcg(H, rhs, M, tol=tol, maxiter=p.cg_max_iterations, x0=x, **decrement)
             iterations += info.iterations
             residuals += info.residuals[1:]
             self._moved = 0.0  # the warm-started count is no reference: keep the previous one
@@ -318,12 +319,12 @@ class AutoSolver(LinearSolver):
         self.reason = facts
         return self.chosen
 
-    def solve(self, H, rhs, tol, geometry, decrement_tol=None):
+    def solve(self, H, rhs, tol, geometry, decrement_tol=None, decrement_left=None):
         t0 = time.perf_counter()
         if self.chosen is None:
             self.choose(H, geometry)  # the analysis counts as setup of the first solve
         choosing = time.perf_counter() - t0
-        result = self.chosen.solve(H, rhs, tol, geometry, decrement_tol=decrement_tol)
+        result = self.chosen.solve(H, rhs, tol, geometry, decrement_tol, decrement_left)
         result.setup_seconds += choosing
         return result
 

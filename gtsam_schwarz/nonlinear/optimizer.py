@@ -160,10 +160,11 @@ class SchwarzOptimizer:
                   seconds: dict) -> tuple[IterationRecord, object]:
         """Solve (H + λD) δ = −g, retract, evaluate; returns the record and the new state."""
         tol = self.forcing.tolerance(gnorm)
+        total, left = self._decrement_tols()
         t0 = time.perf_counter()
         result = self.linear_solver.solve(self._damped(system, lam), system.rhs, tol,
                                           lambda: self.linearizer.geometry(self._state),
-                                          decrement_tol=self._decrement_tol())
+                                          decrement_tol=total, decrement_left=left)
         t1 = time.perf_counter()
         new_state = self.linearizer.retract(self._state, result.x)
         new_error = self.linearizer.error(new_state)
@@ -188,18 +189,28 @@ class SchwarzOptimizer:
             coarse_size=result.coarse_size, preconditioner_rebuilt=result.rebuilt,
             preconditioner_lagged=result.lagged, cg_residuals=result.residuals,
             decrement_stop=bool(getattr(result, "decrement_stop", False)),
+            decrement_bound=float(getattr(result, "decrement_bound", float("nan"))),
             seconds={"linearize": seconds.get("linearize", 0.0), "export": seconds.get("export", 0.0),
                      "setup": result.setup_seconds, "cg": t1 - t0 - result.setup_seconds, "update": t2 - t1})
 
-    def _decrement_tol(self) -> float | None:
-        """The Newton-decrement rule: once the exact (damped) step would lower the quadratic model by
-        at most ``remaining_decrease_tol`` × error, nothing is left to gain; an iterative solver may
-        then stop CG early and the loop stops after that step (None: rule off)."""
+    def _decrement_tols(self) -> tuple[float | None, float | None]:
+        """The Newton-decrement rule's (total, left): CG may stop once the exact (damped) step is bounded
+        to lower the model by at most ``total`` — a decrease after which GTSAM's error rule, with the
+        remaining-decrease check, would stop — and CG has reached all of it but ``left`` =
+        ``remaining_decrease_tol`` × error. The loop then stops after that step. (None, None): off."""
         p = self.nonlinear_params
         error_rules = p.relative_error_tol > 0 or p.absolute_error_tol >= 0  # off: stop on the gradient only (the paper)
-        if p.newton_decrement and error_rules and p.remaining_decrease_tol > 0 and self._error > p.error_tol and np.isfinite(self._error):
-            return p.remaining_decrease_tol * self._error
-        return None
+        E = self._error
+        if not (p.newton_decrement and error_rules and p.remaining_decrease_tol > 0 and np.isfinite(E) and E > p.error_tol):
+            return None, None
+        left = p.remaining_decrease_tol * E
+        previous = self._last_decrease
+        if previous is None or not previous > 0:
+            return left, left  # no rate to judge the decreases still to come by: the step itself must be negligible
+        rule = max(p.absolute_error_tol, p.relative_error_tol * E)  # GTSAM: a decrease this small stops
+        # remaining_decrease(d, previous) = d²/(previous − d) ≤ left  ⇔  d ≤ (−left + √(left² + 4·left·previous))/2
+        rate = 0.5 * (-left + np.sqrt(left * left + 4.0 * left * previous))
+        return max(left, min(rule, rate, 0.99 * previous)), left
 
     def _decrement_converged(self, record: IterationRecord, before: float, new_state) -> bool:
         """After a step whose CG stopped on the decrement rule: keep it if it lowered the error, then
@@ -209,8 +220,9 @@ class SchwarzOptimizer:
             self._accept(new_state, record)
         self.converged = True
         self.stop_reason = (f"Newton decrement: the exact step would lower the error by at most "
-                            f"{self.nonlinear_params.remaining_decrease_tol:g} x error (CG stopped after "
-                            f"{record.cg_iterations} iterations): converged")
+                            f"{record.decrement_bound:.3e}, after which the error rule stops (CG stopped "
+                            f"after {record.cg_iterations} iterations, within "
+                            f"{self.nonlinear_params.remaining_decrease_tol:g} x error of it): converged")
         return False
 
     def _accept(self, new_state, record: IterationRecord):

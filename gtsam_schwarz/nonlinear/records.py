@@ -55,6 +55,7 @@ class IterationRecord(Mapping):
     accepted: bool = False
     seconds: dict = field(default_factory=dict)  # per phase: linearize, export, setup, cg, update
     decrement_stop: bool = False  # CG stopped once the exact step's model decrease was bounded below tolerance
+    decrement_bound: float = float("nan")  # that bound (the last CG iterate's), if CG computed one
 
     @staticmethod
     def _attr(key: str) -> str:

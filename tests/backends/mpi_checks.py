@@ -143,7 +143,8 @@ def distributed_cases(comm, loops: int, points: int) -> list:
                          ("survey3d", survey3d(2, 4, 4), dict(preconditioner="gdsw", subdomains=4)),
                          ("gtsam_factors", mixed_pb, dict(preconditioner="gdsw", subdomains=loops,
                                                           partition="segments"))):
-        serial = SchwarzOptimizer(pb.graph, pb.initial, SchwarzParams(**kw))
+        # every step solved to cg_tol, as the distributed loop does (no Newton-decrement stop)
+        serial = SchwarzOptimizer(pb.graph, pb.initial, SchwarzParams(**kw, newton_decrement=False))
         ref = serial.optimize()
         opt = DistributedOptimizer(pb.graph, pb.initial, SchwarzParams(**kw))
         full = opt.linearizer

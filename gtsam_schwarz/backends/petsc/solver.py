@@ -417,7 +417,7 @@ class PetscSchwarzSolver(PreconditionedCG):
         return its, reason, history, lmin, lmax
 
     # -- LinearSolver ------------------------------------------------------------------------------
-    def solve(self, H, rhs, tol, geometry, decrement_tol=None):  # decrement_tol: not used (KSP solves to tol)
+    def solve(self, H, rhs, tol, geometry, decrement_tol=None, decrement_left=None):  # decrement_*: not used (KSP solves to tol)
         """CG to relative residual ``tol`` (same lagging decisions as PreconditionedCG); the step x
         in the original numbering, complete on every rank."""
         t0 = time.perf_counter()
