@@ -109,9 +109,9 @@ class StoppingParams:
     absolute_error_tol: float = 1e-5
     error_tol: float = 0.0
     remaining_decrease_tol: float = 1e-7  # relative to the error; 0 turns the remaining-decrease check off
-    # Newton-decrement rule (CG only): CG stops, and the loop after that step, once the exact step is
-    # bounded to lower the error by at most remaining_decrease_tol × error (krylov.cg's energy bound);
-    # the PETSc back-end solves every step to cg_tol
+    # Newton-decrement rule (CG only): CG stops, and the loop after that step, once krylov.cg's energy
+    # bound shows the exact step to be one after which the error rule above would stop and all but
+    # remaining_decrease_tol × error of it is reached; the PETSc back-end solves every step to cg_tol
     newton_decrement: bool = True
     blas_threads: int | None = 1  # BLAS threads while iterating (None: leave the process setting)
     linearization: str = "auto"  # auto (native kernels for pose-graph factors, GTSAM for the rest) | native | gtsam
