@@ -36,18 +36,31 @@ class CGInfo:
         return self.lambda_max / self.lambda_min if self.lambda_min > 0 else float("inf")
 
 
-def lanczos_extremes(alphas, betas) -> tuple[float, float]:
-    """Extreme eigenvalues of the Lanczos matrix built from CG step lengths α and β ratios."""
+def _lanczos_matrix(alphas, betas) -> tuple[np.ndarray, np.ndarray]:
+    """Diagonal and off-diagonal of the Lanczos matrix from CG step lengths α and β ratios."""
     k = len(alphas)
-    if k == 0:
-        return float("nan"), float("nan")
     a = np.asarray(alphas, dtype=float)
     bt = np.asarray(betas[: k - 1], dtype=float)
     diag = 1.0 / a
     diag[1:] += bt / a[:-1]
-    off = np.sqrt(np.maximum(bt, 0.0)) / a[:-1]
-    ev = eigvalsh_tridiagonal(diag, off) if k > 1 else diag
+    return diag, np.sqrt(np.maximum(bt, 0.0)) / a[:-1]
+
+
+def lanczos_extremes(alphas, betas) -> tuple[float, float]:
+    """Extreme eigenvalues of the Lanczos matrix built from CG step lengths α and β ratios."""
+    if len(alphas) == 0:
+        return float("nan"), float("nan")
+    diag, off = _lanczos_matrix(alphas, betas)
+    ev = eigvalsh_tridiagonal(diag, off) if len(diag) > 1 else diag
     return float(ev.min()), float(ev.max())
+
+
+def _ritz_min(alphas, betas) -> float:
+    """The smallest Ritz value alone (bisection: O(k), cheap enough to ask at every iteration)."""
+    diag, off = _lanczos_matrix(alphas, betas)
+    if len(diag) == 1:
+        return float(diag[0])
+    return float(eigvalsh_tridiagonal(diag, off, select="i", select_range=(0, 0))[0])
 
 
 def _apply(op, x):
@@ -150,8 +163,9 @@ def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
             z = _apply(M, r)
             rz_new = float(r @ z)
         beta = rz_new / rz
-        if decrement_tol is not None and k >= DECREMENT_MIN_ITERATIONS and np.isfinite(rz_new) and rz_new >= 0:
-            ritz_min = lanczos_extremes(alphas, betas)[0]
+        if (decrement_tol is not None and k >= DECREMENT_MIN_ITERATIONS and decrease <= decrement_tol
+                and np.isfinite(rz_new) and rz_new >= 0):  # (beyond the tolerance already: no bound needed)
+            ritz_min = _ritz_min(alphas, betas)
             if ritz_min > 0:
                 left = DECREMENT_SAFETY * 0.5 * rz_new / ritz_min
                 bound = decrease + left
