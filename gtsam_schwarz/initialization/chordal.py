@@ -14,7 +14,7 @@ import scipy.sparse as sp
 from scipy.sparse import csgraph
 from scipy.sparse.linalg import splu
 
-from ..krylov import pcg
+from ..krylov import pcg_columns
 from ..solvers.sparse import SparseCholesky
 from ..util import sorted_unique
 
@@ -344,6 +344,12 @@ class _Reduced:
         return x
 
 
+def _isotropic(W: np.ndarray) -> bool:
+    """Whether every block W_k (m,d,d) is a multiple of the identity."""
+    d = W.shape[1]
+    return bool(np.all(W[:, ~np.eye(d, dtype=bool)] == 0) and np.all(W[:, np.arange(d), np.arange(d)] == W[:, :1, 0]))
+
+
 def _positive_definite(W: np.ndarray) -> bool:
     """Whether every symmetric block W_k (m,d,d) is positive definite (closed form for 2×2)."""
     if W.shape[1] == 2:
@@ -380,8 +386,8 @@ def _block_jacobi(A_ff, d: int):
     np.add.at(D, (C.row[same] // d, C.row[same] % d, C.col[same] % d), C.data[same])
     Dinv = np.linalg.inv(D)
 
-    def apply(r):
-        return np.einsum("kab,kb->ka", Dinv, r.reshape(nb, d)).ravel()
+    def apply(r):  # r: (n,) or (n, k)
+        return np.einsum("kab,kbc->kac", Dinv, r.reshape(nb, d, -1)).reshape(r.shape)
 
     return apply
 
@@ -399,9 +405,13 @@ class _SchwarzLayout:
         rng = np.random.default_rng(seed)
         nagg = max(1, nf // max(1, int(aggregate_size)))
         seeds = np.sort(rng.choice(nf, size=nagg, replace=False))
-        _, _, src = csgraph.dijkstra(G, directed=False, indices=seeds, unweighted=True,
-                                     min_only=True, return_predecessors=True)
+        depth, pred, src = csgraph.dijkstra(G, directed=False, indices=seeds, unweighted=True,
+                                            min_only=True, return_predecessors=True)
         label = np.searchsorted(seeds, src)
+        # every aggregate's BFS tree from its seed (hop distance ``depth``, parent ``pred``; −1 at
+        # seeds and in parts without a seed): the short paths along which local frames are composed
+        self.depth = np.where(np.isfinite(depth), depth, 0).astype(np.int64)
+        self.pred = np.where(pred >= 0, pred, -1).astype(np.int64)
         lost = src < 0  # in a part of the graph without a seed: one aggregate per such part
         if np.any(lost):
             _, comp = csgraph.connected_components(G, directed=False)
@@ -422,6 +432,33 @@ class _SchwarzLayout:
         self.sub, self.node = sub, node
 
 
+def _local_frames(layout: _SchwarzLayout, red: _Reduced, i, j, R_meas) -> np.ndarray:
+    """Rotations R̃_v (nf,d,d) of the free nodes composed from their aggregate's seed along its BFS
+    tree (R_j = R_i R_ij on every tree edge). Each aggregate's frames then differ from the true
+    rotations by one rotation, up to the noise of a few hops: R̃_vᵀ spans the chordal system's
+    near-null space {X_v = R_vᵀ Q} aggregate by aggregate (a global spanning tree drifts far
+    between neighbours that it joins only around a long loop)."""
+    nf, d = red.free_nodes.size, R_meas.shape[1]
+    u, v = red.node_position[i], red.node_position[j]
+    eid = np.flatnonzero((u >= 0) & (v >= 0))
+    key = np.minimum(u[eid], v[eid]) * nf + np.maximum(u[eid], v[eid])
+    order = np.argsort(key, kind="stable")
+    key = key[order]
+    frames = np.broadcast_to(np.eye(d), (nf, d, d)).copy()
+    tree = layout.pred >= 0
+    levels = np.bincount(layout.depth[tree]) if np.any(tree) else np.zeros(0, np.int64)
+    by_depth = np.argsort(np.where(tree, layout.depth, 0), kind="stable")
+    start = np.searchsorted(np.where(tree, layout.depth, 0)[by_depth], np.arange(len(levels) + 1))
+    for level in range(1, len(levels)):  # a few levels: the aggregates' radius in hops
+        nodes = by_depth[start[level]:start[level + 1]]
+        nodes = nodes[tree[nodes]]
+        parent = layout.pred[nodes]
+        e = eid[order[np.searchsorted(key, np.minimum(parent, nodes) * nf + np.maximum(parent, nodes))]]
+        step = np.where((u[e] == parent)[:, None, None], R_meas[e], np.swapaxes(R_meas[e], 1, 2))
+        frames[nodes] = frames[parent] @ step
+    return frames
+
+
 def _schwarz(A_ff, layout: _SchwarzLayout, d: int, basis: np.ndarray):
     """Two-level overlapping Schwarz, balancing form M⁻¹ = Q + (I − QA) Σ R_kᵀA_k⁻¹R_k (I − AQ)
     with Q = P (PᵀAP)⁻¹ Pᵀ, P the aggregates times per-node near-null blocks ``basis`` (nf,d,d)."""
@@ -433,14 +470,14 @@ def _schwarz(A_ff, layout: _SchwarzLayout, d: int, basis: np.ndarray):
     subx = np.repeat(layout.sub, d)
     same = subx[Ab.row] == subx[Ab.col]
     Ab = sp.csc_matrix((Ab.data[same], (Ab.row[same], Ab.col[same])), shape=Ab.shape)
-    local = splu(Ab, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    local = SparseCholesky(Ab, "the chordal subdomain blocks")
     RmT = Rm.T.tocsr()
     rows = np.broadcast_to(np.arange(nf)[:, None, None] * d + np.arange(d)[None, :, None], basis.shape)
     cols = np.broadcast_to(layout.label[:, None, None] * d + np.arange(d)[None, None, :], basis.shape)
     P = sp.csr_matrix((basis.ravel(), (rows.ravel(), cols.ravel())), shape=(nf * d, layout.count * d))
     PT = P.T.tocsr()
-    coarse = splu((PT @ A_ff @ P).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                  options={"SymmetricMode": True})
+    A0 = PT @ A_ff @ P
+    coarse = SparseCholesky(((A0 + A0.T) * 0.5).tocsc(), "the chordal coarse matrix")
 
     def Q(x):
         return P @ coarse.solve(PT @ x)
@@ -473,13 +510,17 @@ def _direct_solve(A, B):
 # anchor: an index (anchors its component; every other component is anchored at its lowest index)
 # or one index per component; anchor_pose: None (identity), (R, p), a homogeneous matrix or, in 2D,
 # (x, y, θ); a list of those with a list of anchors. solver "cg": the project's PCG to relative
-# residual tol, preconditioned by "schwarz" (two-level overlapping Schwarz on aggregates of about
-# aggregate_size poses, overlap layers), "tree" (exact spanning-tree solve), "jacobi" or "none";
-# solver "direct": sparse Cholesky (CHOLMOD if installed, else SuperLU). rotation "lago" (2D only):
+# residual tol (the right-hand sides side by side), preconditioned by "schwarz" (two-level Schwarz
+# on aggregates of about aggregate_size poses grown by overlap layers, balancing form; coarse blocks:
+# the rotations composed from each aggregate's seed (rotation system), constants (translations)),
+# "tree" (exact spanning-tree solve), "jacobi" or "none"; solver "direct": sparse Cholesky (CHOLMOD
+# if installed, else SuperLU). translation_solver: the translations' ("cg" or "direct"; None: as
+# solver); isotropic translation information makes them one scalar Laplacian. rotation "lago" (2D only):
 # angles with 2π wraps regularized along the BFS spanning tree instead of the chordal relaxation.
 # blas_threads: BLAS threads while solving (None: leave the process setting), as the optimizer's.
 def chordal_initialization(n: int, edges, R_meas, t_meas, information=None, anchor=0,
-                           anchor_pose=None, solver: str = "cg", *, preconditioner: str = "schwarz",
+                           anchor_pose=None, solver: str = "cg", *, translation_solver: str | None = None,
+                           preconditioner: str = "schwarz",
                            rotation: str = "chordal", tol: float = 1e-10, maxiter: int | None = None,
                            translation_weights: str = "information", aggregate_size: int = 16,
                            overlap: int = 1, seed: int = 0, blas_threads: int | None = 1) -> ChordalResult:
@@ -534,7 +575,7 @@ def _blas_controller():
     return ThreadpoolController()
 
 
-def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver, preconditioner,
+def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver, translation_solver, preconditioner,
              rotation, tol, maxiter, translation_weights, aggregate_size, overlap, seed, blas_threads):
     """Body of :func:`chordal_initialization` (BLAS threads already limited)."""
     t0 = time.perf_counter()
@@ -572,9 +613,13 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
         raise ValueError("rotation weights must be positive and finite")
     if np.any(~np.isfinite(W_loc)) or (m and not _positive_definite(W_loc)):
         raise ValueError("translation information blocks must be positive definite and finite")
+    translation_solver = solver if translation_solver is None else translation_solver
+    if translation_solver not in SOLVERS:
+        raise ValueError(f"unknown solver {translation_solver!r}; choose one of {', '.join(SOLVERS)}")
+    cg_translations = translation_solver == "cg"
     i, j = edges[:, 0], edges[:, 1]
     anchors, R_fix, p_fix, ncomp = _anchors(n, edges, anchor, anchor_pose, d)
-    cg = solver == "cg"
+    cg = solver == "cg"  # the rotations' solver
     tree_cache = []
 
     def spanning_tree():
@@ -604,10 +649,11 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
 
     red_d, red_1 = _Reduced(n, d, anchors), _Reduced(n, 1, anchors)
     layout = None
-    if cg and preconditioner == "schwarz" and red_1.free_nodes.size:
+    if (cg or cg_translations) and preconditioner == "schwarz" and red_1.free_nodes.size:
         layout = _SchwarzLayout(red_1, i, j, aggregate_size, overlap, seed)
     info: dict = {"n": n, "m": m, "d": d, "components": int(ncomp), "anchors": anchors.tolist(),
-                  "solver": solver, "preconditioner": preconditioner if cg else None,
+                  "solver": solver, "translation_solver": translation_solver,
+                  "preconditioner": preconditioner if cg or cg_translations else None,
                   "rotation": rotation}
     if layout is not None:
         info["aggregates"] = layout.count
@@ -617,7 +663,7 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
         A_T, _ = _normal_equations(n, red.d, i[tree_eid], j[tree_eid], S[tree_eid], W[tree_eid])
         return _tree_solver(red, red.restrict(A_T)[0], tree_order)
 
-    def solve(red, A, b, x_fixed, S, W, basis=None):
+    def solve(red, A, b, x_fixed, S, W, basis=None, cg=cg):
         """Anchored solve for each column of b; returns the full x and the CG infos."""
         shape = (red.free.size,) + x_fixed.shape[1:]
         if red.free.size == 0:
@@ -638,11 +684,7 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
             M = _schwarz(A_ff, layout, red.d, basis)
         else:
             M = None
-        X = np.zeros_like(B)
-        infos = []
-        for k in range(B.shape[1]):  # d ≤ 3 right-hand sides
-            X[:, k], cg_info = pcg(A_ff, B[:, k], M=M, tol=tol, maxiter=maxiter)
-            infos.append(cg_info)
+        X, infos = pcg_columns(A_ff, B, M=M, tol=tol, maxiter=maxiter)  # d ≤ 3 right-hand sides side by side
         return red.expand(X.reshape(shape), x_fixed), infos
 
     # ---- rotations ------------------------------------------------------------------------
@@ -663,11 +705,9 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
                 return X
             return np.concatenate([X, np.stack([-X[:, 1, 0], X[:, 0, 0]], -1)[:, :, None]], 2)
 
-        def rotation_basis(_A_ff, B):
-            """Near-null blocks X_i ≈ R_iᵀ of the connection Laplacian, from the tree solve."""
-            T = tree_of(red_d, S, W)
-            Xt = full_blocks(np.column_stack([T(B[:, k]) for k in range(cols)]))
-            return np.swapaxes(project_to_so(np.swapaxes(Xt, 1, 2)), 1, 2)
+        def rotation_basis(_A_ff, _B):
+            """Near-null blocks X_v ≈ R_vᵀ of the connection Laplacian: the aggregates' local frames."""
+            return np.swapaxes(_local_frames(layout, red_d, i, j, R_meas), 1, 2)
 
         if scalar:  # ‖x_j − R_ijᵀ x_i‖²: x_j − a x_i in ℂ with a = e^{−iδ_ij}
             w = w_rot.astype(complex)
@@ -707,22 +747,24 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
     # ---- translations ---------------------------------------------------------------------
     # the BetweenFactor translation error lives in the frame R_i R_ij: W = (R_i R_ij) Ω_tt (R_i R_ij)ᵀ
     c = np.einsum("kab,kb->ka", rotations[i], t_meas)
-    off_diagonal = ~np.eye(d, dtype=bool)
-    isotropic = direct_path and bool(np.all(W_loc[:, off_diagonal] == 0)
-                                     and np.all(W_loc[:, np.arange(d), np.arange(d)] == W_loc[:, :1, :1].reshape(-1, 1)))
-    if isotropic:  # W = R (wI) Rᵀ = wI: the coordinates decouple, one scalar Laplacian, d right-hand sides
-        if not scalar:  # 3D: a one-unknown pattern of its own for the translations (rotations need 3×3
-            system = _BlockSystem(n, 1, i, j, anchors)  # blocks): 1/27 of the block system's flops
+    if _isotropic(W_loc):  # W = R (wI) Rᵀ = wI: the coordinates decouple, one scalar Laplacian, d right-hand sides
         w = W_loc[:, 0, 0]
         wc = w[:, None] * c
         b = np.stack([np.bincount(j, wc[:, a], minlength=n) - np.bincount(i, wc[:, a], minlength=n)
                       for a in range(d)], -1)
-        P, infos = direct((w, w, -w, -w), b, p_fix), []
+        if cg_translations:
+            one = np.ones((m, 1, 1))
+            A, _ = _normal_equations(n, 1, i, j, one, w[:, None, None])
+            P, infos = solve(red_1, A, b, p_fix, one, w[:, None, None], cg=True)
+        else:
+            if not scalar:  # 3D: a one-unknown pattern of its own for the translations (rotations need 3×3
+                system = _BlockSystem(n, 1, i, j, anchors)  # blocks): 1/27 of the block system's flops
+            P, infos = direct((w, w, -w, -w), b, p_fix), []
     else:
         Rw = rotations[i] @ R_meas
         W = Rw @ W_loc @ np.swapaxes(Rw, 1, 2)
-        if system is not None:  # S = I: the blocks are ±W
-            if scalar:   # correlated x, y: the 2×2-block pattern
+        if not cg_translations:  # S = I: the blocks are ±W
+            if system is None or system.d != d:   # correlated x, y (2D), rotations by CG or LAGO: d×d blocks
                 system = _BlockSystem(n, d, i, j, anchors)
             Wc = np.einsum("kab,kb->ka", W, c)
             b = np.stack([np.bincount(j, Wc[:, a], minlength=n) - np.bincount(i, Wc[:, a], minlength=n)
@@ -731,7 +773,7 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
         else:
             S = np.broadcast_to(np.eye(d), (m, d, d))
             A, b = _normal_equations(n, d, i, j, S, W, c)
-            P, infos = solve(red_d, A, b, p_fix.reshape(-1), S, W)
+            P, infos = solve(red_d, A, b, p_fix.reshape(-1), S, W, cg=True)
     positions = P.reshape(n, d)
     t3 = time.perf_counter()
     info["translation_iterations"] = [c_.iterations for c_ in infos]

@@ -1,5 +1,5 @@
 """Krylov solvers: preconditioned CG with residual history and Lanczos eigenvalue estimates."""
 
-from .cg import STOPPING_NORMS, CGInfo, lanczos_extremes, pcg
+from .cg import STOPPING_NORMS, CGInfo, lanczos_extremes, pcg, pcg_columns
 
-__all__ = ["CGInfo", "STOPPING_NORMS", "lanczos_extremes", "pcg"]
+__all__ = ["CGInfo", "STOPPING_NORMS", "lanczos_extremes", "pcg", "pcg_columns"]

@@ -9,6 +9,7 @@ factorization, and nothing of it depends on the numbers.
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -88,7 +89,23 @@ def _surrogate(B: sp.csr_matrix) -> sp.csc_matrix:
 SUPERNODAL_DEGREE = 4.5  # mean entries per column of the surrogate from which it is factorized supernodally
 
 
+_LAST_COUNTS: list = []  # [(key, counts)] of the last pattern analysed: a run's chordal start and its
+# automatic linear solver both ask for the pose graph's vertex pattern (the analysis, not the answer, is kept)
+
+
 def _factor_column_counts(S: sp.csc_matrix) -> np.ndarray:
+    """Column counts of the Cholesky factor of S (see :func:`_counts`), remembered for the last pattern."""
+    key = (S.shape, hashlib.blake2b(np.ascontiguousarray(S.indptr, dtype=np.int64).tobytes()
+                                    + np.ascontiguousarray(S.indices, dtype=np.int64).tobytes(),
+                                    digest_size=16).digest())
+    if _LAST_COUNTS and _LAST_COUNTS[0][0] == key:
+        return _LAST_COUNTS[0][1]
+    counts = _counts(S)
+    _LAST_COUNTS[:] = [(key, counts)]
+    return counts
+
+
+def _counts(S: sp.csc_matrix) -> np.ndarray:
     """Column counts of the Cholesky factor of S under the solver's own fill-reducing ordering.
 
     Graphs with dense neighbourhoods (surveys: ≥ ``SUPERNODAL_DEGREE`` entries per column; 2D

@@ -7,6 +7,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from gtsam_schwarz import Jacobi, pcg
+from gtsam_schwarz.krylov import pcg_columns
 
 
 def spd(n=60, seed=0, cond=1e4):
@@ -104,3 +105,27 @@ def test_model_decrease_and_decrement_bound(precondition):
     assert above.decrement_stop and not above.converged and above.iterations < full.iterations
     assert above.model_decrease == pytest.approx(-phi(xs), rel=1e-10)
     assert above.model_decrease <= decrement * (1 + 1e-12) <= above.decrement_bound
+
+
+def test_pcg_columns_runs_each_column_as_pcg_does():
+    """Side-by-side CG: every column takes the iterations, residuals and solution of its own pcg run
+    (columns stop separately; a zero column is converged at once)."""
+    rng = np.random.default_rng(3)
+    n = 300
+    A = sp.diags([-1.0, 2.05, -1.0], [-1, 0, 1], shape=(n, n)).tocsr()
+    A = A + sp.diags(rng.uniform(0.0, 0.5, n))
+    d = A.diagonal()
+    M = lambda r: r / d[:, None] if r.ndim == 2 else r / d  # noqa: E731 (Jacobi on one or several columns)
+    B = rng.normal(size=(n, 3))
+    B[:, 1] *= 1e-3  # another scale: the same relative tolerance, other iterates
+    B[:, 2] = 0.0
+    X, infos = pcg_columns(A, B, M=M, tol=1e-9)
+    for k in range(2):
+        x, info = pcg(A, B[:, k], M=M, tol=1e-9)
+        assert infos[k].converged and infos[k].iterations == info.iterations
+        np.testing.assert_allclose(infos[k].residuals, info.residuals, rtol=1e-8, atol=1e-14)
+        np.testing.assert_allclose(X[:, k], x, rtol=1e-10, atol=1e-12)
+        assert np.linalg.norm(B[:, k] - A @ X[:, k]) <= 1e-9 * np.linalg.norm(B[:, k])
+    assert infos[2].converged and infos[2].iterations == 0 and not X[:, 2].any()
+    capped, capped_infos = pcg_columns(A, B[:, :1], M=M, tol=1e-14, maxiter=5)
+    assert not capped_infos[0].converged and capped_infos[0].iterations == 5
