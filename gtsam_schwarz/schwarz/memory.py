@@ -91,8 +91,8 @@ def estimate_two_level(M, A, geometry=None) -> MemoryEstimate:
         # Φ's CSR entries (8 + 4 bytes) and the extension's kept positions of A_IΓΦ_Γ's entries in the
         # compressed right-hand side (int32, at most one per entry of Φ_I)
         "coarse basis": 16.0 * nnz_phi,
-        # A₀ and, while it is assembled, A_Γ·Φ (|Γ| × K at most)
-        "coarse matrix": (16.0 * nc * nc if dense_coarse else 48.0 * nnz_A0) + 12.0 * len(ext.gamma) * K,
+        # A₀ and, while it is assembled, A_Γ·Φ for one block of interface rows (K columns each at most)
+        "coarse matrix": (16.0 * nc * nc if dense_coarse else 48.0 * nnz_A0) + 12.0 * ext.a0_block_rows(len(ext.gamma)) * K,
     }
     # the extension solves group by group (coarse.extension.column_groups): its largest right-hand side
     nI_sub = np.bincount(ext.sub, minlength=len(K_sub))
