@@ -47,9 +47,11 @@ def rotation_solver(n: int, i: np.ndarray, j: np.ndarray, d: int) -> tuple[str, 
 
 def chordal_state(linearizer, state, solver: str = "auto"):
     """The chordal initialization of a pure pose graph as a new linearizer state (None if the
-    linearizer cannot describe its graph as one, e.g. with landmarks). ``solver``: "direct", "cg"
-    or "auto" (:func:`rotation_solver`; the translations by the same, as their scalar Laplacian fills
-    in where the rotation system does: 91 125-pose survey 2.9 s direct, 1.2 s CG)."""
+    linearizer cannot describe its graph as one, e.g. with landmarks). ``solver``: "direct", "cg",
+    "auto" (:func:`rotation_solver`) or "cg-3d" (CG for 3D graphs from ``CG_MIN_POSES`` poses, no
+    analysis: for runs whose linear solver is Schwarz-CG by choice). The translations go the same way,
+    as their scalar Laplacian fills in where the rotation system does (91 125-pose survey: 2.9 s
+    direct, 1.2 s CG)."""
     graph = linearizer.pose_graph() if hasattr(linearizer, "pose_graph") else None
     if graph is None or graph["between"] is None:
         return None, "not a pure Pose2/Pose3 graph: initialization skipped"
@@ -59,8 +61,11 @@ def chordal_state(linearizer, state, solver: str = "auto"):
     else:
         anchor, anchor_pose = 0, None
     why = ""
-    if solver == "auto":
-        solver, why = rotation_solver(graph["n"], np.asarray(b["i"]), np.asarray(b["j"]), np.asarray(b["R"]).shape[1])
+    d = np.asarray(b["R"]).shape[1]
+    if solver == "cg-3d":  # the Gauss-Newton systems go to Schwarz-CG: so do large 3D rotation systems
+        solver = "cg" if d == 3 and graph["n"] >= CG_MIN_POSES else "direct"
+    elif solver == "auto":
+        solver, why = rotation_solver(graph["n"], np.asarray(b["i"]), np.asarray(b["j"]), d)
     options = dict(overlap=0, tol=CG_TOL) if solver == "cg" else {}
     result = chordal_initialization(graph["n"], np.column_stack([b["i"], b["j"]]), b["R"], b["t"], b["information"],
                                     anchor=anchor, anchor_pose=anchor_pose, solver=solver, **options)

@@ -101,7 +101,8 @@ class SchwarzOptimizer:
         # and on sparse graphs they are factorized (262k-pose model problem: 0.3 s, CG 26-41 s); the 3D
         # rotation system goes to CG where its 3×3-block factor fills in (91 125-pose survey: 24 s direct,
         # 6.6 s CG, 1/3 of the memory)
-        state, note = chordal_state(self.linearizer, self._state, solver="auto")
+        schwarz = self.nonlinear_params.linear_solver.preconditioner not in ("auto", "direct")
+        state, note = chordal_state(self.linearizer, self._state, solver="cg-3d" if schwarz else "auto")
         record["note"] = note
         if state is not None:
             error = self.linearizer.error(state)

@@ -101,3 +101,18 @@ def test_the_vertex_pattern_analysis_is_done_once():
     again = pattern_cholesky_cost(B.astype(np.float32), np.full(n, 6))  # other numbers and blocks, same pattern
     assert cost._LAST_COUNTS[0][1] is kept
     assert again.flops == pytest.approx(8 * first.flops)
+
+
+def test_chordal_state_follows_the_linear_solver():
+    """Runs whose linear solver is Schwarz-CG by choice solve large 3D chordal systems by CG without
+    an analysis; both starts have the same error to the CG tolerance's effect."""
+    from gtsam_schwarz.nonlinear.initialize import CG_MIN_POSES, chordal_state
+
+    lin = NativeLinearizer.from_arrays(**survey3d(4, 32, 32, sigma=0.01, seed=2).arrays)
+    assert lin.pose_graph()["n"] >= CG_MIN_POSES
+    start = lin.initial_state()
+    cg, note_cg = chordal_state(lin, start, solver="cg-3d")
+    direct, note_direct = chordal_state(lin, start, solver="direct")
+    assert "CG" in note_cg and "(direct" in note_direct
+    assert lin.error(cg) == pytest.approx(lin.error(direct), rel=1e-6)
+    assert lin.error(cg) < 0.01 * lin.error(start)
