@@ -47,17 +47,34 @@ class LinearSolver:
 
 
 class DirectSolver(LinearSolver):
-    """Sparse Cholesky of H (CHOLMOD with one symbolic analysis, or SuperLU): the reference."""
+    """Sparse Cholesky of H (CHOLMOD with one symbolic analysis, or SuperLU): the reference.
+
+    Given the block ``offsets``, its first factorization is preceded by the predicted size of the
+    factor (``solvers.cost``): one that would not fit ``memory_limit`` (None: what is available)
+    stops with :class:`InsufficientMemoryError` instead of being killed by the operating system."""
 
     choice = "direct"
 
-    def __init__(self):
+    def __init__(self, offsets: np.ndarray | None = None, memory_limit=None):
         self._pattern = self._factor = None
+        self.offsets, self.memory_limit = offsets, memory_limit
+
+    def check_memory(self, H) -> None:
+        cost = cholesky_cost(H, self.offsets)
+        need = FACTOR_BYTES * cost.nnz_L + MATRIX_BYTES * H.nnz
+        available = available_memory(self.memory_limit)
+        if need > available:
+            raise InsufficientMemoryError(
+                f"the direct factorization needs about {gib(need)} (nnz(L) {cost.nnz_L:.3g}, {cost.fill:.0f}x "
+                f"nnz(H)) but {gib(available)} is available: use preconditioner='auto' or 'rgdsw-linear' "
+                f"(Schwarz-CG) or more memory")
 
     def solve(self, H, rhs, tol, geometry, decrement_tol=None, decrement_left=None):
         t0 = time.perf_counter()
         H = sp.csr_matrix(H)
         if self._factor is None or not self._pattern.matches(H):
+            if self._factor is None and self.offsets is not None:
+                self.check_memory(H)
             self._pattern, self._factor = SparsityPattern(H), SparseCholesky(H, "the Gauss-Newton matrix")
         else:
             self._factor.refactor(H)
@@ -346,7 +363,7 @@ def make_linear_solver(params: LinearSolverParams, offsets: np.ndarray, translat
     if params.preconditioner == "auto":
         return AutoSolver(params, offsets, translation_mask)
     if params.preconditioner == "direct":
-        return DirectSolver()
+        return DirectSolver(offsets, params.memory_limit)
     return PreconditionedCG(params, offsets, translation_mask)
 
 

@@ -122,6 +122,26 @@ def test_auto_does_not_take_direct_when_its_factor_does_not_fit(survey, monkeypa
     assert explicit.decomposition.overlap == 2
 
 
+def test_direct_refuses_a_factor_that_would_not_fit(survey):
+    """The forced direct solver predicts its factor before factorizing: one line naming what to change
+    where it would not fit, the solve where it does."""
+    prob, H, dec, geometry, mask = survey
+    import gtsam_schwarz.nonlinear.linear_solver as ls
+    from gtsam_schwarz.nonlinear.params import LinearSolverParams
+    from gtsam_schwarz.solvers.memory import FACTOR_BYTES, MATRIX_BYTES
+    km = KeyMap.from_graph(prob.graph, prob.initial)
+    real = ls.cholesky_cost(H, km.offsets)
+    need = FACTOR_BYTES * real.nnz_L + MATRIX_BYTES * H.nnz
+    rhs = np.ones(H.shape[0])
+    small = ls.make_linear_solver(LinearSolverParams(preconditioner="direct", memory_limit=0.5 * need), km.offsets, mask)
+    with pytest.raises(InsufficientMemoryError, match="direct factorization needs about") as caught:
+        small.solve(H, rhs, 1e-8, None)
+    assert "\n" not in str(caught.value) and "rgdsw-linear" in str(caught.value)
+    enough = ls.make_linear_solver(LinearSolverParams(preconditioner="direct", memory_limit=2 * need), km.offsets, mask)
+    x = enough.solve(H, rhs, 1e-8, None).x
+    assert np.linalg.norm(H @ x - rhs) <= 1e-8 * np.linalg.norm(rhs)
+
+
 MEASURE = textwrap.dedent("""
     import json, sys
     import scipy.sparse as sp
