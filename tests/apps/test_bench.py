@@ -162,3 +162,21 @@ def test_run_child_raises_the_stack_limit_only_when_asked():
     assert raised["status"] == default["status"] == "ok"
     assert ast.literal_eval(default["stdout"].strip()) == STACK
     assert ast.literal_eval(raised["stdout"].strip()) == (STACK[1], STACK[1])  # unlimited where the hard limit allows
+
+
+def test_a_direct_run_that_would_not_fit_is_a_row_and_pairs_with_schwarz():
+    """The forced direct solver refuses (predicted) to factorize beyond the memory limit: its row
+    says so, and the Direct vs Schwarz table counts Schwarz finishing as the faster."""
+    from gtsam_schwarz.apps.bench import OUT_OF_MEMORY, _pair_row, direct_vs_schwarz
+
+    proc = bench("--cases", "sq8x16", "--solvers", "ours-direct", "--param", "memory_limit=1K", "--json")
+    assert proc.returncode == 0, proc.stderr
+    (row,) = json.loads(proc.stdout)["runs"]
+    assert row["status"].startswith(f"failed: {OUT_OF_MEMORY}") and "direct factorization needs about" in row["status"]
+    schwarz = {"case": "sq8x16", "solver": "ours-schwarz", "status": "ok", "seconds": 1.0, "peak_mib": 10.0,
+               "cg_mean": 20.0, "subdomains": 4, "coarse_size": 12}
+    auto = {**schwarz, "solver": "ours", "linear_solver": {"used": "rgdsw-linear"}}
+    (pair,) = direct_vs_schwarz([row, schwarz, auto])
+    assert pair["faster"] == "schwarz" and pair["auto_picked_faster"] is True
+    assert math.isnan(pair["schwarz_over_direct"]) and _pair_row(pair)[1] == "does not fit"
+    assert direct_vs_schwarz([schwarz, auto]) == []  # no direct row at all: nothing to compare
