@@ -107,7 +107,7 @@ def test_bench_sizes_hold_the_survey_cases():
     assert small["lawn100x100"].model_poses == 10_000 and small["survey8x24x24"].model_poses == 4608
     large = {c.name: c.model_poses for c in bench.CASES["large"] if c.grid}
     assert large == {"lawn600x600": 360_000, "lawn1000x1000": 1_000_000, "survey32x32x32": 32_768,
-                     "survey45x45x45": 91_125}
+                     "survey45x45x45": 91_125, "survey60x60x60": 216_000}
     assert "3D survey, 8 floors of 24 x 24" in small["survey8x24x24"].description
     assert not any(c.grid for c in bench.CASES["tiny"])  # tiny stays a few seconds
     assert {"ours", "ours-direct", "ours-schwarz"} <= set(bench.SOLVERS)
