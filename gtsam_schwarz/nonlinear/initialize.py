@@ -8,7 +8,6 @@ the anchor is the pose of a prior (kept where it is) or the first pose.
 from __future__ import annotations
 
 import numpy as np
-
 import scipy.sparse as sp
 
 from ..initialization.chordal import chordal_initialization
@@ -20,9 +19,10 @@ INITIALIZATIONS = ("file", "chordal")
 # The 3D rotation system (3×3 blocks on the pose graph's pattern) by CG with the chordal module's
 # two-level Schwarz (aggregates of 16 poses, local frames, no overlap) costs about this many seconds
 # per entry of the matrix, solved to 1e-6 (3D surveys of 32 768 and 91 125 poses: 1.0 and 1.1 µs,
-# 30-31 iterations; CG_TOL's 1e-4 takes 19); its direct factorization is predicted by the linear solver's cost model, which
-# 3×3 blocks run DIRECT_SLOWDOWN× slower than (smaller supernodes than H's 6×6 blocks: 16 384, 32 768
-# and 91 125 poses 1.35 / 4.2 / 24.0 s measured, 0.86 / 2.69 / 15.7 predicted).
+# 30-31 iterations; CG_TOL's 1e-4 takes 19: the estimate keeps a margin). Its direct factorization
+# is predicted by the linear solver's cost model, which 3×3 blocks run DIRECT_SLOWDOWN× slower than
+# (smaller supernodes than H's 6×6 blocks: 16 384, 32 768 and 91 125 poses 1.35 / 4.2 / 24.0 s
+# measured, 0.86 / 2.69 / 15.7 predicted).
 CG_SECONDS_PER_ENTRY = 1.1e-6
 DIRECT_SLOWDOWN = 1.5
 CG_MIN_POSES = 4096  # below, the factorization costs too little to be worth its analysis
