@@ -156,7 +156,6 @@ def load_case(case: Case, datasets: pathlib.Path):
 def _solve_ours(graph, initial, overrides: dict, arrays: dict | None = None) -> dict:
     from .compare import run_ours
     from ..nonlinear import SchwarzParams
-
     from ..solvers.memory import InsufficientMemoryError
 
     _load_our_modules()
