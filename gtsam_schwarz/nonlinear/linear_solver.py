@@ -51,13 +51,22 @@ class DirectSolver(LinearSolver):
 
     Given the block ``offsets``, its first factorization is preceded by the predicted size of the
     factor (``solvers.cost``): one that would not fit ``memory_limit`` (None: what is available)
-    stops with :class:`InsufficientMemoryError` instead of being killed by the operating system."""
+    stops with :class:`InsufficientMemoryError` instead of being killed by the operating system.
+
+    ``lagged``: a new matrix is first solved by CG preconditioned with the last factor (the exact inverse of the last H + λD, close to one for the
+    next), allowed at most ``LAG_BUDGET`` × the measured time of refactorizing and solving; CG that
+    falls behind the convergence rate this needs is given up and H refactorized. The solve that only
+    confirms convergence then costs a few triangular solves instead of a factorization."""
 
     choice = "direct"
+    LAG_BUDGET = 0.7  # share of a refactorization + solve that a lagged CG solve may spend
+    LAG_MIN_ITERATIONS = 6  # a smaller cap (a factorization as cheap as a few solves) is not worth trying
+    LAG_RATE_FROM = 3  # from this iteration on, CG must keep the rate that reaches tol within the cap
 
-    def __init__(self, offsets: np.ndarray | None = None, memory_limit=None):
+    def __init__(self, offsets: np.ndarray | None = None, memory_limit=None, lagged: bool = True):
         self._pattern = self._factor = None
-        self.offsets, self.memory_limit = offsets, memory_limit
+        self.offsets, self.memory_limit, self.lagged = offsets, memory_limit, lagged
+        self._refactor_seconds = self._iteration_seconds = None  # measured: refactor + solve; SpMV + solve
 
     def check_memory(self, H) -> None:
         cost = cholesky_cost(H, self.offsets)
@@ -69,17 +78,56 @@ class DirectSolver(LinearSolver):
                 f"nnz(H)) but {gib(available)} is available: use preconditioner='auto' or 'rgdsw-linear' "
                 f"(Schwarz-CG) or more memory")
 
+    def lag_cap(self) -> int:
+        """CG iterations a lagged solve may take: LAG_BUDGET × (refactor + solve) / (SpMV + solve)."""
+        if not (self.lagged and self._refactor_seconds and self._iteration_seconds):
+            return 0
+        return int(self.LAG_BUDGET * self._refactor_seconds / self._iteration_seconds)
+
+    def _lagged_solve(self, H, rhs, tol, decrement_tol, decrement_left) -> tuple[SolveResult | None, int]:
+        """CG on H preconditioned by the previous factor; (None, iterations) when given up."""
+        cap = self.lag_cap()
+        if cap < self.LAG_MIN_ITERATIONS:
+            return None, 0
+        k = np.arange(cap + 1)  # ρ_k ≤ tol^(k/cap) from a third of the cap on (CG speeds up as it goes)
+        bounds = np.where(k >= max(self.LAG_RATE_FROM, cap // 3), tol ** (k / cap), np.inf)
+        t0 = time.perf_counter()
+        x, info = pcg(H, rhs, self._factor, tol=tol, maxiter=cap, bounds=bounds,
+                      decrement_tol=decrement_tol, decrement_left=decrement_left)
+        if info.iterations:
+            self._iteration_seconds = (time.perf_counter() - t0) / info.iterations
+        if not (info.converged or info.decrement_stop):
+            return None, info.iterations
+        return SolveResult(x=x, iterations=info.iterations, converged=info.converged,
+                           decrement_stop=info.decrement_stop, decrement_bound=info.decrement_bound,
+                           lambda_min=info.lambda_min, lambda_max=info.lambda_max, residuals=list(info.residuals),
+                           tolerance=tol, rebuilt=False, lagged=True), info.iterations
+
     def solve(self, H, rhs, tol, geometry, decrement_tol=None, decrement_left=None):
         t0 = time.perf_counter()
         H = sp.csr_matrix(H)
-        if self._factor is None or not self._pattern.matches(H):
+        fresh = self._factor is None or not self._pattern.matches(H)
+        tried = 0
+        if not fresh:
+            result, tried = self._lagged_solve(H, rhs, tol, decrement_tol, decrement_left)
+            if result is not None:
+                return result
+        t1 = time.perf_counter()
+        if fresh:
             if self._factor is None and self.offsets is not None:
                 self.check_memory(H)
             self._pattern, self._factor = SparsityPattern(H), SparseCholesky(H, "the Gauss-Newton matrix")
         else:
             self._factor.refactor(H)
+        t2 = time.perf_counter()
         x = self._factor.solve(rhs)
-        return SolveResult(x=x, setup_seconds=time.perf_counter() - t0, tolerance=0.0)
+        t3 = time.perf_counter()
+        if self.lagged:  # what a lagged solve saves, and (first time) what one of its iterations costs
+            self._refactor_seconds = self._factor.factor_seconds + (t3 - t2)
+            if self._iteration_seconds is None:  # one SpMV and one more (warm) solve
+                self._factor.solve(H @ x)
+                self._iteration_seconds = time.perf_counter() - t3
+        return SolveResult(x=x, iterations=tried, setup_seconds=t3 - t1, tolerance=0.0, lagged=tried > 0)
 
 
 class PreconditionedCG(LinearSolver):
@@ -292,7 +340,7 @@ class AutoSolver(LinearSolver):
         direct_bytes = FACTOR_BYTES * direct.nnz_L + MATRIX_BYTES * H.nnz
         available = available_memory(self.params.memory_limit)
         if t_direct <= floor and direct_bytes <= available:  # Schwarz cannot win: not even its SpMVs fit in the direct time
-            self.choice, self.chosen = "direct", DirectSolver()
+            self.choice, self.chosen = "direct", DirectSolver(lagged=self.params.lagged_preconditioner)
             self.reason = (f"nnz(L) {direct.nnz_L:.3g} ({direct.fill:.1f}x nnz(H)), {direct.flops:.3g} flops: "
                            f"direct {t_direct:.3g} s per solve (predicted) < the {floor:.3g} s of "
                            f"{self.model.CG_ITERATIONS} CG iterations' SpMVs alone")
@@ -326,7 +374,7 @@ class AutoSolver(LinearSolver):
             self.choice, self.chosen = self.schwarz_name, cg
             facts += f"; direct's factor needs ~{gib(direct_bytes)}, {gib(available)} available"
         elif not fits or t_direct <= t_schwarz:
-            self.choice, self.chosen = "direct", DirectSolver()
+            self.choice, self.chosen = "direct", DirectSolver(lagged=self.params.lagged_preconditioner)
             if not fits:
                 facts += f"; {self.schwarz_name} would not fit in {gib(available)}"
         else:
@@ -363,7 +411,7 @@ def make_linear_solver(params: LinearSolverParams, offsets: np.ndarray, translat
     if params.preconditioner == "auto":
         return AutoSolver(params, offsets, translation_mask)
     if params.preconditioner == "direct":
-        return DirectSolver(offsets, params.memory_limit)
+        return DirectSolver(offsets, params.memory_limit, params.lagged_preconditioner)
     return PreconditionedCG(params, offsets, translation_mask)
 
 

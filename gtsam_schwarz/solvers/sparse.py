@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import time
 
 import numpy as np
 import scipy.sparse as sp
@@ -40,6 +41,8 @@ class SparseCholesky:
     scikit-sparse is not installed) every refactor is a fresh ``splu``.
     """
 
+    analyze_seconds = factor_seconds = 0.0
+
     def __init__(self, K: sp.spmatrix, what: str = "local matrix", backend: str | None = None):
         self.what = what
         self.backend = backend or SPARSE_BACKEND
@@ -48,17 +51,26 @@ class SparseCholesky:
 
     def analyze(self, K: sp.spmatrix) -> "SparseCholesky":
         """Symbolic work from K's pattern: ordering and supernodes (CHOLMOD); nothing for SuperLU."""
+        t0 = time.perf_counter()
         K = _csc(K)
         self.n = K.shape[0]
         self._factor = None
         if self.backend == "cholmod" and self.n:
             self._analysis = _cholmod_analyze(K)
+        self.analyze_seconds = time.perf_counter() - t0
         return self
 
     def refactor(self, K: sp.spmatrix) -> "SparseCholesky":
         """New numbers, same pattern (CHOLMOD keeps its ordering and supernodes)."""
         if self.n == 0:
             return self
+        t0 = time.perf_counter()
+        try:
+            return self._refactor(K)
+        finally:
+            self.factor_seconds = time.perf_counter() - t0  # the numeric factorization (callers budget by it)
+
+    def _refactor(self, K: sp.spmatrix) -> "SparseCholesky":
         K = _csc(K)
         check_finite(K, self.what)
         if self.backend == "cholmod":

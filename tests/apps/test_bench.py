@@ -84,7 +84,7 @@ def test_our_split_has_the_five_phases(report):
         else:
             assert r["linear_solver"]["used"] == requested[r["solver"]]
         if r["linear_solver"]["used"] == "direct":
-            assert r["cg_mean"] == 0 and r["subdomains"] is None
+            assert r["cg_mean"] >= 0 and r["subdomains"] is None  # (CG preconditioned with a lagged factor)
         else:
             assert r["cg_mean"] > 0 and r["subdomains"] >= 1 and r["coarse_size"] >= 0
 

@@ -226,3 +226,35 @@ def test_extension_with_cancelling_products_and_in_column_blocks_equals_a_dense_
     ref = _dense_extension(H2, ext, rows, cols, vals, nc)
     assert np.abs(Phi_b.tocsr().toarray() - ref).max() <= 1e-9 * np.abs(ref).max()
     assert np.allclose(A0_b.toarray(), ref.T @ H2.toarray() @ ref, rtol=1e-8, atol=1e-9 * np.abs(A0_b).max())
+
+
+def _direct(lagged):
+    from gtsam_schwarz.nonlinear.linear_solver import DirectSolver
+    solver = DirectSolver(lagged=lagged)
+    solver.LAG_MIN_ITERATIONS = 1  # the small test matrices factorize as fast as a few solves
+    return solver
+
+
+def test_lagged_direct_solver_uses_the_last_factor_and_refactors_when_cg_falls_behind(two_points):
+    """A nearby matrix is solved by CG preconditioned with the last factor (no refactorization) to the
+    tolerance; a far one makes CG fall behind, and H is refactorized: both answers are the exact ones."""
+    _, H1, _ = two_points
+    n = H1.shape[0]
+    H1 = (H1 + 1e-3 * sp.eye(n)).tocsr()
+    b = np.random.default_rng(0).standard_normal(n)
+    near = (H1 + 1e-4 * sp.diags(H1.diagonal())).tocsr()  # the last H + λD with a changed λ
+    far = (H1 + 100.0 * sp.diags(H1.diagonal())).tocsr()  # same pattern, a spectrum far from H1's
+    solver = _direct(True)
+    first = solver.solve(H1, b, 1e-10, lambda: None)
+    assert first.iterations == 0 and not first.lagged and np.allclose(H1 @ first.x, b, rtol=0, atol=1e-9 * np.linalg.norm(b))
+    solver._refactor_seconds = 1.0  # a factorization costs as much as many solves
+    lagged = solver.solve(near, b, 1e-10, lambda: None)
+    assert lagged.lagged and not lagged.rebuilt and lagged.setup_seconds == 0.0 and 1 <= lagged.iterations <= 5
+    assert np.linalg.norm(near @ lagged.x - b) <= 1e-10 * np.linalg.norm(b)
+    solver._refactor_seconds, solver._iteration_seconds = 1.0, 0.1  # a cap of 7 CG iterations
+    fallback = solver.solve(far, b, 1e-10, lambda: None)
+    assert fallback.lagged and fallback.rebuilt and fallback.iterations <= 7 and fallback.setup_seconds > 0
+    assert np.allclose(fallback.x, spla.spsolve(far.tocsc(), b), rtol=1e-8, atol=1e-12)
+    plain = _direct(False)
+    plain.solve(H1, b, 1e-10, lambda: None)
+    assert plain.lag_cap() == 0 and plain.solve(near, b, 1e-10, lambda: None).iterations == 0
