@@ -71,6 +71,8 @@ def _insert_all(values: gtsam.Values, keys: list, poses, kind: str) -> None:
 # Noise models and m-estimators from gtsam
 # ---------------------------------------------------------------------------------------------
 
+_TAKE_CHUNK = 1 << 20  # entries of H gathered per np.take (int32 positions become intp a chunk at a time)
+
 _M = gtsam.noiseModel.mEstimator
 _ESTIMATORS = {getattr(_M, name): code for name, code in (
     ("Null", nk.GAUSSIAN), ("Huber", nk.HUBER), ("Cauchy", nk.CAUCHY), ("Tukey", nk.TUKEY),
@@ -585,7 +587,9 @@ class NativeLinearizer:
             size += K.hsize
         self._zero = size          # S[size] = 0: entries only GTSAM-linearized factors fill
         self._src_size = size + 1
-        self._src = P.source_index(puts, fill=size)
+        src = P.source_index(puts, fill=size)
+        self._src = src.astype(np.int32) if size < 2**31 - 1 else src  # (entry-sized: half the memory)
+        del src
         self._other_pos = None  # (indptr, indices, positions) of the last H of the other factors
 
     # -----------------------------------------------------------------------------------------
@@ -708,15 +712,17 @@ class NativeLinearizer:
                 error += self._kind_system(K, state, S, g)
         state._cache["native_error"] = error
         t2 = time.perf_counter()
-        data = np.take(S, self._src, mode="clip", out=self._data_buffer())
+        data = self._data_buffer()
+        src = self._src
+        for lo in range(0, len(src), _TAKE_CHUNK):  # int32 positions: numpy converts them a chunk at a time
+            np.take(S, src[lo:lo + _TAKE_CHUNK], mode="clip", out=data[lo:lo + _TAKE_CHUNK])
         t3 = time.perf_counter()
         if self._others is not None and self._others.graph.size():
             error += self._add_others(state, data, g)
         H = self.pattern.matrix(data)
         t4 = time.perf_counter()
         self.seconds = {"blocks": t2 - t1, "gather": t3 - t2, "gtsam": t4 - t3}
-        return LinearSystem(H=H, g=g, error=float(error), diagonal=self.diagonal, seconds=dict(self.seconds),
-                            buffers=self._buffers.setdefault("damped", []))
+        return LinearSystem(H=H, g=g, error=float(error), diagonal=self.diagonal, seconds=dict(self.seconds))
 
     def _kind_system(self, K: _Kind, state: NativeState, S: np.ndarray, g: np.ndarray) -> float:
         """Blocks of one pose kind into the source array S (diagonal sums, off-diagonal blocks) and g;
@@ -788,6 +794,11 @@ class NativeLinearizer:
         if len(pool) < 3:
             pool.append(buf)
         return buf
+
+    def release_scratch(self) -> None:
+        """Drop the scratch arrays kept between linearizations (about 1.5 × H's values): for runs
+        whose memory peak comes later (a Schwarz build), at the price of fresh pages next time."""
+        self._buffers = {"data": self._buffers.get("data", [])}
 
     def _buffer(self, name: str, shape: tuple) -> np.ndarray:
         """Scratch array kept between calls (no page faults for large temporaries); not thread-safe."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from contextlib import nullcontext
 
 import numpy as np
 
@@ -119,6 +120,9 @@ class SchwarzOptimizer:
         total = time.perf_counter() - t0  # phases: GTSAM's path splits off its export to scipy
         export = system.seconds.get("export", 0.0)
         system.seconds = {**system.seconds, "linearize": total - export, "export": export}
+        release = getattr(self.linearizer, "release_scratch", None)
+        if release is not None and self.linear_solver.choice != "direct":  # a Schwarz build's peak comes next
+            release()
         if self.anchors is None:
             self.anchors = free_components(system.H, self.linearizer.offsets, self.linearizer.geometry(self._state),
                                            system.diagonal)
@@ -140,11 +144,12 @@ class SchwarzOptimizer:
         return False
 
     def _damped(self, system: LinearSystem, lam: float):
-        """H + λD: D = I, or diag(H) clipped to [1e-6, 1e32] with ``diagonal_damping`` (GTSAM's)."""
+        """H + λD for a ``with`` block (H's diagonal raised in place, restored after it):
+        D = I, or diag(H) clipped to [1e-6, 1e32] with ``diagonal_damping`` (GTSAM's)."""
         if lam == 0.0 and self._anchor_dofs is None:
-            return system.H
+            return nullcontext(system.H)
         # the linearizer's known diagonal positions: a gather, not a search of every row
-        diag = system.H.data[system.diagonal] if system.diagonal is not None else system.H.diagonal()
+        diag = system.H.data[system.diagonal_positions()]
         return system.damped(self._damping_diagonal(diag, lam, self._anchor_dofs))
 
     def _damping_diagonal(self, diag: np.ndarray, lam: float, anchors) -> np.ndarray:
@@ -164,9 +169,9 @@ class SchwarzOptimizer:
         tol = self.forcing.tolerance(gnorm)
         total, left = self._decrement_tols()
         t0 = time.perf_counter()
-        result = self.linear_solver.solve(self._damped(system, lam), system.rhs, tol,
-                                          lambda: self.linearizer.geometry(self._state),
-                                          decrement_tol=total, decrement_left=left)
+        with self._damped(system, lam) as H:
+            result = self.linear_solver.solve(H, system.rhs, tol, lambda: self.linearizer.geometry(self._state),
+                                              decrement_tol=total, decrement_left=left)
         t1 = time.perf_counter()
         new_state = self.linearizer.retract(self._state, result.x)
         new_error = self.linearizer.error(new_state)

@@ -41,9 +41,11 @@ def test_hessian_pattern_keeps_one_pattern_and_the_numbers(two_points):
     assert abs(F1 - H1).max() == 0 and abs(F2 - H2).max() == 0
     assert pattern.fit(H2) is not None  # cached positions, same answer
     assert abs(pattern.fit(H2) - H2).max() == 0
-    D = LinearSystem(F2, np.zeros(F2.shape[0]), diagonal=pattern.diagonal).damped(np.full(F2.shape[0], 0.5))
-    assert np.array_equal(D.indices, F2.indices)
-    assert abs(D - (H2 + 0.5 * sp.eye(H2.shape[0]))).max() < 1e-12
+    before = F2.data.copy()
+    with LinearSystem(F2, np.zeros(F2.shape[0]), diagonal=pattern.diagonal).damped(np.full(F2.shape[0], 0.5)) as D:
+        assert np.array_equal(D.indices, F2.indices) and np.shares_memory(D.data, F2.data)  # in place: no copy of H
+        assert abs(D - (H2 + 0.5 * sp.eye(H2.shape[0]))).max() < 1e-12
+    assert np.array_equal(F2.data, before)  # restored exactly
     # an entry outside every coupled block does not fit
     n = H1.shape[0]
     outside = sp.csr_matrix(([1.0, 1.0], ([0, n - 1], [n - 1, 0])), shape=(n, n))
