@@ -46,5 +46,15 @@ class IndexSets:
         m = len(self.indices)
         return sp.csr_matrix((np.ones(m), (np.arange(m), self.indices)), shape=(m, self.n))
 
+    def subsets(self, j0: int, j1: int) -> "IndexSets":
+        """Sets j0 … j1 − 1 on their own (same global dimension)."""
+        lo, hi = int(self.ptr[j0]), int(self.ptr[j1])
+        vertices = vertex_ptr = None
+        if self.vertices is not None:
+            vlo, vhi = int(self.vertex_ptr[j0]), int(self.vertex_ptr[j1])
+            vertices, vertex_ptr = self.vertices[vlo:vhi], self.vertex_ptr[j0:j1 + 1] - vlo
+        return IndexSets(indices=self.indices[lo:hi], ptr=self.ptr[j0:j1 + 1] - lo, n=self.n,
+                         vertices=vertices, vertex_ptr=vertex_ptr, offsets=self.offsets)
+
     def get(self, i: int) -> np.ndarray:
         return self.indices[self.ptr[i]:self.ptr[i + 1]]

@@ -22,6 +22,7 @@ from ..solvers.memory import FACTOR_BYTES, MATRIX_BYTES, InsufficientMemoryError
 
 EXTENSION_BYTES = 20  # per entry of one column block: right-hand side, solution, its selected part, mask (measured 18)
 OVERHEAD = 1.4  # allocator slack and temporaries not counted above (measured/estimated 0.7-1.1: docs/survey.md, memory)
+LOW_MEMORY_FROM = 2**30  # estimated peak (bytes) beyond which the factorizations are not kept between phases
 LOW_MEMORY_SLACK = 1.0  # one factorization at a time, 3D 36 864 poses: 2171 MiB estimated, 2162 measured (2511 both kept)
 
 
@@ -111,7 +112,11 @@ def fit_memory(M, A, limit=None, name: str = "Schwarz", est: MemoryEstimate | No
     raise :class:`InsufficientMemoryError` when even one column at a time would not."""
     est = est if est is not None else estimate_two_level(M, A, geometry)
     est.limit = available_memory(limit)
-    for low in (False, True):  # keep the factorizations if possible; else one phase at a time
+    # keep the factorizations if they fit and are small; else one phase at a time (the factorizations
+    # kept only save a symbolic analysis per rebuild: at 91 125 3D poses the process peak 2960 ->
+    # 2600 MiB, LM 60.4 -> 61.5 s)
+    modes = (True,) if est.peak(None, False) > LOW_MEMORY_FROM else (False, True)
+    for low in modes:
         if est.peak(None, low) <= est.limit:
             est.low_memory = low
             return est

@@ -9,6 +9,7 @@ from ..dd.decomposition import Decomposition
 from ..dd.geometry import VertexGeometry
 from ..dd.interface import find_interface
 from ..solvers import SingularLocalMatrixError, factorize
+from ..solvers.memory import bound_heap_fragmentation
 from .base import SchwarzOperator, SumOperator
 from .memory import fit_memory
 from .one_level import AdditiveSchwarz, _need
@@ -98,6 +99,7 @@ class TwoLevelSchwarz(SumOperator):
 
     def setup(self, A):
         """Interface components and the harmonic-extension plan (symbolic, once per graph)."""
+        bound_heap_fragmentation()
         self.interface = find_interface(self.decomposition, self.interface_grouping)
         self.extension = HarmonicExtension(self.decomposition, self.interface)
         self.memory = None
