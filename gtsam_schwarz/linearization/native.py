@@ -748,10 +748,10 @@ class NativeLinearizer:
         d, nsym = K.d, len(K.sym)
         mb, mp = K.nb, K.np_
         nc = 2 * mb + mp
-        C = self._buffer(f"C{d}", (nsym, nc))
-        G = self._buffer(f"G{d}", (d, nc))
         error = 0.0
         if d == 3:
+            C = self._buffer(f"C{d}", (nsym, nc))
+            G = self._buffer(f"G{d}", (d, nc))
             if K.between is not None:
                 hij = S[K.hseg:K.hseg + 9 * mb].reshape(9, mb) if K.pairs is None else np.empty((9, mb))
                 for (lo, hi, Fc), rc in zip(K.between.chunks(), self._chunk_residuals(state, K, K.between)):
@@ -765,16 +765,25 @@ class NativeLinearizer:
                 for (lo, hi, Fc), rc in zip(K.prior.chunks(), self._chunk_residuals(state, K, K.prior)):
                     nk.pose2_system(Fc, rc, hjj=tuple(C[:, o + lo:o + hi]), gj=tuple(G[:, o + lo:o + hi]))
                     error += rc.error
-        else:
+        else:  # 6×6 blocks: diagonal contributions summed per pose a chunk at a time (no nc-long
+            # 21-row scratch: at 91 125 3D poses 110 MB less beside a Schwarz preconditioner)
             ia, ib = np.array(K.sym).T
+            n = K.n
+            D, Gs = np.zeros((nsym, n)), np.zeros((d, n))
+
+            def add(idx, blocks, grads):  # blocks (m, 6, 6), grads (m, 6) at the poses idx
+                vals = blocks[:, ia, ib].T
+                for s in range(nsym):
+                    D[s] += np.bincount(idx, vals[s], minlength=n)
+                for a in range(d):
+                    Gs[a] += np.bincount(idx, grads[:, a], minlength=n)
+
             if K.between is not None:
                 hij_all = S[K.hseg:K.hseg + 36 * mb].reshape(mb, 36) if K.pairs is None else np.empty((mb, 36))
                 for (lo, hi, Fc), rc in zip(K.between.chunks(), self._chunk_residuals(state, K, K.between)):
                     hjj, gj, hij, hii, gi = nk.pose3_system(Fc, rc)
-                    C[:, lo:hi] = hii[:, ia, ib].T
-                    C[:, mb + lo:mb + hi] = hjj[:, ia, ib].T
-                    G[:, lo:hi] = gi.T
-                    G[:, mb + lo:mb + hi] = gj.T
+                    add(np.concatenate([K.cidx[lo:hi], K.cidx[mb + lo:mb + hi]]), np.concatenate([hii, hjj]),
+                        np.concatenate([gi, gj]))
                     hij_all[lo:hi] = hij.reshape(hi - lo, 36)
                     error += rc.error
                 if K.pairs is not None:
@@ -783,15 +792,17 @@ class NativeLinearizer:
                 o = 2 * mb
                 for (lo, hi, Fc), rc in zip(K.prior.chunks(), self._chunk_residuals(state, K, K.prior)):
                     hjj, gj, *_ = nk.pose3_system(Fc, rc)
-                    C[:, o + lo:o + hi] = hjj[:, ia, ib].T
-                    G[:, o + lo:o + hi] = gj.T
+                    add(K.cidx[o + lo:o + hi], hjj, gj)
                     error += rc.error
         n = K.n
+        if d == 3:
+            D = [np.bincount(K.cidx, C[s], minlength=n) for s in range(nsym)]
+            Gs = [np.bincount(K.cidx, G[a], minlength=n) for a in range(d)]
         for s in range(nsym):
-            S[K.dseg + s * n:K.dseg + (s + 1) * n] = np.bincount(K.cidx, C[s], minlength=n)
+            S[K.dseg + s * n:K.dseg + (s + 1) * n] = D[s]
         gk = np.empty((n, d))
         for a in range(d):
-            gk[:, a] = np.bincount(K.cidx, G[a], minlength=n)
+            gk[:, a] = Gs[a]
         if K.dof is None:
             g[:] = gk.ravel()
         else:

@@ -171,6 +171,9 @@ class PreconditionedCG(LinearSolver):
 
     def moved(self, step_max: float) -> None:
         self._moved += step_max
+        release = getattr(self.operator, "release", None)
+        if release is not None and self._lag_cap() is None:  # the next solve rebuilds: drop what it replaces now
+            release()
 
     def _lag_cap(self) -> int | None:
         """Lagged preconditioner: keep the previous M while the linearization point has moved less

@@ -105,6 +105,15 @@ class TwoLevelSchwarz(SumOperator):
         self.memory = None
         return self
 
+    def release(self, factors: bool | None = None) -> None:
+        """Drop Φ, A_0 and (``factors``; None: in the low-memory mode) the subdomain factors until the
+        next :meth:`update`, which refactors them with a new analysis: for a caller that knows the
+        next solve rebuilds (they then do not sit beside the next linearization's arrays)."""
+        self.coarse_space = self.coarse = None
+        self.parts = [self.one_level]
+        if factors or (factors is None and self.memory is not None and self.memory.low_memory):
+            self.one_level.solver.release()
+
     def update(self, A, geometry: VertexGeometry | None = None):
         """New numbers in A (and poses in ``geometry``): interface, index sets, submatrix patterns
         and symbolic factorizations are kept; numbers, Φ and A_0 are recomputed."""
@@ -115,10 +124,7 @@ class TwoLevelSchwarz(SumOperator):
         low = self.memory.low_memory
         self.extension.block_columns = self.memory.block_columns
         self.extension.keep_factors = not low
-        self.coarse_space = self.coarse = None  # the previous Φ is not needed while the new one is built
-        self.parts = [self.one_level]
-        if low:
-            self.one_level.solver.release()  # refactored (with a new analysis) after the extension
+        self.release(factors=low)  # the previous Φ is not needed while the new one is built
         self.coarse_space = gdsw_coarse_space(A, self.decomposition, self.interface, self.kind, geometry,
                                               self.rotation, self.translation_mask, self.extension)
         self.one_level.update(A)
