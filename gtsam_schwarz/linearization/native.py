@@ -20,7 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..dd.geometry import VertexGeometry
-from ..util import sorted_unique
+from ..util import sorted_unique, with_small_pages
 from . import native_kernels as nk
 from .base import LinearSystem
 
@@ -254,6 +254,7 @@ class NativeLinearizer:
     :class:`NativeState`; for a pure pose graph no gtsam call happens per iteration.
     """
 
+    @with_small_pages
     def __init__(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values):
         t0 = time.perf_counter()
         keys = np.asarray(graph.keyVector(), dtype=np.uint64)   # sorted (a KeySet)
@@ -337,6 +338,7 @@ class NativeLinearizer:
 
     # -----------------------------------------------------------------------------------------
     @classmethod
+    @with_small_pages
     def from_arrays(cls, kind: str, keys, poses, edges=None, measurements=None, *, information=None,
                     sqrt_information=None, robust=None, prior_keys=None, prior_measurements=None,
                     prior_information=None, prior_sqrt_information=None, prior_robust=None) -> "NativeLinearizer":

@@ -16,6 +16,7 @@ import numpy as np
 from ..dd.index_sets import vertex_dofs
 from ..initialization.chordal import blas_limits
 from ..linearization.base import Linearizer, LinearSystem
+from ..util import with_small_pages
 from .gauge import free_components
 from .hooks import verbose_printer
 from .initialize import chordal_state
@@ -38,6 +39,7 @@ class SchwarzOptimizer:
     a run that stops without converging warns (``warnings.warn``) with the reason.
     """
 
+    @with_small_pages
     def __init__(self, graph, initial, params=None, linearizer: Linearizer | None = None,
                  linear_solver: LinearSolverParams | None = None):
         self.graph = graph
@@ -67,6 +69,7 @@ class SchwarzOptimizer:
         self._hooks = [h for h in (p.iteration_hook, verbose_printer() if p.verbose else None) if h is not None]
 
     # -- GTSAM-like accessors ------------------------------------------------------------
+    @with_small_pages
     def values(self):
         """The current estimate as ``gtsam.Values``."""
         return self.linearizer.values(self._state)
@@ -275,6 +278,7 @@ class SchwarzOptimizer:
         return True
 
     # -- the loops ------------------------------------------------------------------------
+    @with_small_pages
     def iterate(self) -> bool:
         """One nonlinear iteration (GN step, or LM until a step is accepted or λ is too large).
 
@@ -350,6 +354,7 @@ class SchwarzOptimizer:
                 self.stop_reason = f"lambda {self._lambda:.1e} above {d.lambda_upper_bound:g}: no further decrease"
                 return False
 
+    @with_small_pages
     def optimize(self):
         """Iterate until a stopping rule fires; returns the optimized ``gtsam.Values``.
 
