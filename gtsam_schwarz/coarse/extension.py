@@ -15,6 +15,7 @@ import scipy.sparse as sp
 from ..dd.decomposition import Decomposition
 from ..dd.interface import Interface
 from ..solvers import Gather, SparseCholesky, factorize
+from ..solvers.gather import pattern_of
 
 
 class CoarseBasis:
@@ -240,9 +241,9 @@ class HarmonicExtension:
         col_subdomains = sp.csr_matrix(col_subdomains)
         signature = _digest(gamma_rows, gamma_cols, col_subdomains.indptr, col_subdomains.indices)
         cached = self._cached
-        if cached is None or not self.groups[0].A_IG.pattern.matches(A) or cached[0] != signature:
+        if cached is None or not cached[2].matches(A) or cached[0] != signature:
             self._cached = None
-            self._cached = cached = (signature, self._plan(gamma_rows, gamma_cols, col_subdomains))
+            self._cached = cached = (signature, self._plan(gamma_rows, gamma_cols, col_subdomains), pattern_of(A))
         plan = cached[1]
         data = np.empty(len(plan["indices"]))
         Phi_G = sp.csr_matrix((gamma_vals[plan["g_order"]], plan["indices"][plan["nnz_I"]:], plan["ptr_G"]),
@@ -250,8 +251,10 @@ class HarmonicExtension:
         for group, gplan in zip(self.groups, plan["groups"]):
             group.refactor(A)
             self._extend(group, group.A_IG(A), Phi_G, plan, gplan, data)
-            if not self.keep_factors:
-                group.factor = None  # the next refactor analyses anew
+            if not self.keep_factors:  # the next refactor analyses anew and finds the gathers' positions again
+                group.factor = None
+                group.A_II.forget()
+                group.A_IG.forget()
         data[plan["nnz_I"]:] = gamma_vals[plan["g_order"]]
         local = sp.csr_matrix((data, plan["indices"], plan["indptr"]), shape=(n, nc))
         # (AΦ)_I = A_II Φ_I + A_IΓ Φ_Γ = 0 for the harmonic extension, so Φᵀ A Φ = Φ_Γᵀ (AΦ)_Γ:
@@ -267,6 +270,8 @@ class HarmonicExtension:
             A0 = part if A0 is None else A0 + part
             del part
         del A_G, Phi_GG
+        if not self.keep_factors:  # at 91 125 3D poses these gathers held 170 MB; finding them again costs 1.7 s
+            self._A_G.forget()
         A0 = (A0 + A0.T).tocsr()  # symmetric to rounding: its mean with the transpose, scaled in place
         A0.data *= 0.5
         return CoarseBasis(local, self.order), A0

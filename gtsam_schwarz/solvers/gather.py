@@ -34,7 +34,7 @@ class SparsityPattern:
 _shared: list = [None]  # the last pattern built: the gathers of one matrix share one copy of it
 
 
-def _pattern_of(A: sp.csr_matrix) -> SparsityPattern:
+def pattern_of(A: sp.csr_matrix) -> SparsityPattern:
     """A's pattern, shared with the previous gather's when equal (one copy per matrix, not per gather)."""
     last = _shared[0]
     if last is None or not last.matches(A):
@@ -53,6 +53,10 @@ class Gather:
         self.extract = extract
         self.pattern = None
 
+    def forget(self) -> None:
+        """Drop the positions and B's pattern (memory); the next call finds them anew."""
+        self.pattern = self.src = self.indices = self.indptr = None
+
     def __call__(self, A: sp.spmatrix) -> sp.csr_matrix:
         A = sp.csr_matrix(A)
         if not A.has_sorted_indices:
@@ -67,7 +71,7 @@ class Gather:
             B.sort_indices()
             self.src = B.data.astype(itype) - 1
             self.shape, self.indices, self.indptr = B.shape, B.indices, B.indptr  # B's numbers are not kept
-            self.pattern = _pattern_of(A)
+            self.pattern = pattern_of(A)
         # every result shares the (read-only) index arrays: only its numbers are new
         B = sp.csr_matrix((A.data[self.src], self.indices, self.indptr), shape=self.shape, copy=False)
         B.has_sorted_indices = True

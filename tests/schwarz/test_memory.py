@@ -78,8 +78,9 @@ def test_one_factorization_at_a_time_gives_the_same_preconditioner(survey):
     low.memory.low_memory = True
     assert low.memory.peak(None, True) != low.memory.peak(None, False)
     low.update(H, geometry)
-    assert all(g.factor is None for g in low.extension.groups)
-    low.update(H, geometry)  # a rebuild: factorizations analysed anew
+    assert all(g.factor is None and g.A_II.pattern is None and g.A_IG.pattern is None for g in low.extension.groups)
+    assert low.extension._A_G.pattern is None  # the interface-row gathers' positions are found again too
+    low.update(H, geometry)  # a rebuild: factorizations analysed anew, gather positions found anew
     x = np.random.default_rng(2).standard_normal(H.shape[0])
     assert np.allclose(low.apply(x), full.apply(x), rtol=1e-10, atol=1e-12 * np.abs(full.apply(x)).max())
 
