@@ -53,10 +53,11 @@ class DirectSolver(LinearSolver):
     factor (``solvers.cost``): one that would not fit ``memory_limit`` (None: what is available)
     stops with :class:`InsufficientMemoryError` instead of being killed by the operating system.
 
-    ``lagged``: a new matrix is first solved by CG preconditioned with the last factor (the exact inverse of the last H + λD, close to one for the
-    next), allowed at most ``LAG_BUDGET`` × the measured time of refactorizing and solving; CG that
-    falls behind the convergence rate this needs is given up and H refactorized. The solve that only
-    confirms convergence then costs a few triangular solves instead of a factorization."""
+    ``lagged``: a new matrix is first solved by CG preconditioned with the last factor (the exact
+    inverse of the last H + λD, close to one for the next), allowed at most ``LAG_MAX_ITERATIONS``
+    and ``LAG_BUDGET`` × the measured time of refactorizing and solving; CG that falls behind the
+    convergence rate this needs is given up and H refactorized. The solve that only confirms
+    convergence then costs a few triangular solves instead of a factorization."""
 
     choice = "direct"
     LAG_BUDGET = 0.7  # share of a refactorization + solve that a lagged CG solve may spend
@@ -105,8 +106,9 @@ class DirectSolver(LinearSolver):
             self._iteration_seconds = (time.perf_counter() - t0) / info.iterations
         if not info.converged:
             return None, info.iterations
-        return SolveResult(x=x, iterations=info.iterations, converged=True, lambda_min=info.lambda_min, lambda_max=info.lambda_max, residuals=list(info.residuals),
-                           tolerance=tol, rebuilt=False, lagged=True), info.iterations
+        return SolveResult(x=x, iterations=info.iterations, converged=True, lambda_min=info.lambda_min,
+                           lambda_max=info.lambda_max, residuals=list(info.residuals), tolerance=tol,
+                           rebuilt=False, lagged=True), info.iterations
 
     def solve(self, H, rhs, tol, geometry, decrement_tol=None, decrement_left=None):
         t0 = time.perf_counter()
