@@ -11,6 +11,7 @@ from conftest import DATASETS, one_line_error, run_cli
 import gtsam_schwarz as gs
 from gtsam_schwarz import load_graph
 from gtsam_schwarz.apps import bench
+from gtsam_schwarz.nonlinear.linear_solver import DirectSolver
 
 
 def cli(*args):
@@ -119,7 +120,10 @@ def test_bench_survey_case_runs_ours_direct_and_schwarz(grid, dimension):
     rows = {s: bench.solve(case, s, {"subdomains": 2}, DATASETS) for s in ("ours", "ours-direct", "ours-schwarz")}
     for solver, r in rows.items():
         assert r["poses"] == math.prod(grid) and r["dimension"] == dimension and r["converged"], solver
-    assert rows["ours-direct"]["linear_solver"]["used"] == "direct" and rows["ours-direct"]["cg_mean"] == 0
+    # the direct row's CG iterations come only from lagged attempts with the last factor, which are
+    # tried only when timing says a refactorization costs enough (machine-dependent), and capped
+    assert rows["ours-direct"]["linear_solver"]["used"] == "direct"
+    assert rows["ours-direct"]["cg_mean"] <= DirectSolver.LAG_MAX_ITERATIONS
     schwarz = rows["ours-schwarz"]
     assert schwarz["linear_solver"]["used"] == "rgdsw-linear" and schwarz["cg_mean"] > 0
     assert schwarz["subdomains"] == 2
