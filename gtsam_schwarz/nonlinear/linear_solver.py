@@ -72,9 +72,11 @@ class DirectSolver(LinearSolver):
         self._pattern = self._factor = None
         self.offsets, self.memory_limit, self.lagged = offsets, memory_limit, lagged
         self._refactor_seconds = self._iteration_seconds = None  # measured: refactor + solve; SpMV + solve
+        self.predicted_seconds = None  # the cost model's factorization + solve (check_memory's or the auto choice's)
 
     def check_memory(self, H) -> None:
         cost = cholesky_cost(H, self.offsets)
+        self.predicted_seconds = CostModel().direct(cost)
         need = FACTOR_BYTES * cost.nnz_L + MATRIX_BYTES * H.nnz
         available = available_memory(self.memory_limit)
         if need > available:
@@ -131,6 +133,10 @@ class DirectSolver(LinearSolver):
         t3 = time.perf_counter()
         if self.lagged:  # what a lagged solve saves, and (first time) what one of its iterations costs
             self._refactor_seconds = self._factor.factor_seconds + (t3 - t2)
+            if fresh and self.predicted_seconds is not None:
+                # a first factorization also allocates (and page-faults) the factor: at 1M 2D poses
+                # 3.4 s against 0.4-0.5 s for a refactorization; the cost model's figure bounds it
+                self._refactor_seconds = min(self._refactor_seconds, self.predicted_seconds)
             if self._iteration_seconds is None:  # one SpMV and one more (warm) solve
                 self._factor.solve(H @ x)
                 self._iteration_seconds = time.perf_counter() - t3
@@ -334,6 +340,7 @@ class AutoSolver(LinearSolver):
         self.choice = ""
         self.reason = ""
         self.model = CostModel()
+        self.on_choice = None  # called with the choice once made (the optimizer frees memory for a build)
 
     @property
     def decomposition(self):
@@ -350,11 +357,11 @@ class AutoSolver(LinearSolver):
         direct_bytes = FACTOR_BYTES * direct.nnz_L + MATRIX_BYTES * H.nnz
         available = available_memory(self.params.memory_limit)
         if t_direct <= floor and direct_bytes <= available:  # Schwarz cannot win: not even its SpMVs fit in the direct time
-            self.choice, self.chosen = "direct", DirectSolver(lagged=self.params.lagged_preconditioner)
+            self.choice, self.chosen = "direct", self._direct(t_direct)
             self.reason = (f"nnz(L) {direct.nnz_L:.3g} ({direct.fill:.1f}x nnz(H)), {direct.flops:.3g} flops: "
                            f"direct {t_direct:.3g} s per solve (predicted) < the {floor:.3g} s of "
                            f"{self.model.CG_ITERATIONS} CG iterations' SpMVs alone")
-            return self.chosen
+            return self._chose()
         dec = cg._decompose(H)
         M = create_preconditioner(self.schwarz_name, H.shape[0], dec, self.translation_mask,
                                   interface_grouping=params.interface_grouping, coarse_modes=params.coarse_modes,
@@ -384,7 +391,7 @@ class AutoSolver(LinearSolver):
             self.choice, self.chosen = self.schwarz_name, cg
             facts += f"; direct's factor needs ~{gib(direct_bytes)}, {gib(available)} available"
         elif not fits or t_direct <= t_schwarz:
-            self.choice, self.chosen = "direct", DirectSolver(lagged=self.params.lagged_preconditioner)
+            self.choice, self.chosen = "direct", self._direct(t_direct)
             if not fits:
                 facts += f"; {self.schwarz_name} would not fit in {gib(available)}"
         else:
@@ -392,6 +399,16 @@ class AutoSolver(LinearSolver):
         if self.chosen is cg:
             cg.operator = M  # set up already (interface, extension plan, memory fit): reused
         self.reason = facts
+        return self._chose()
+
+    def _direct(self, predicted: float) -> DirectSolver:
+        solver = DirectSolver(lagged=self.params.lagged_preconditioner)
+        solver.predicted_seconds = predicted
+        return solver
+
+    def _chose(self) -> LinearSolver:
+        if self.on_choice is not None:
+            self.on_choice(self.choice)
         return self.chosen
 
     def solve(self, H, rhs, tol, geometry, decrement_tol=None, decrement_left=None):
