@@ -470,6 +470,12 @@ def markdown(report: dict) -> str:
     head = ["case", "poses", "solver", "status", "final error", "rel. diff vs LM", "its",
             "seconds", "÷ GTSAM LM", "÷ ours", "peak MiB", "Δ MiB", "stack"]
     out = _header(report) + _table(head, [_main_row(r, poses[r["case"]]) for r in rows]) + ["", LEGEND]
+    repeated = [r for r in rows if r.get("seconds_runs")]
+    if repeated:
+        out += ["", f"Each row is the median of {repeated[0]['repeats']} runs, solvers interleaved; every run's "
+                    "seconds in the order run:", ""]
+        out += [f"- {r['case']} {r['solver']}: " + ", ".join(_f(t, ".3f") for t in r["seconds_runs"])
+                for r in repeated]
     ours = [r for r in rows if r["solver"] in OURS and r["status"] == "ok"]
     if ours:
         head = ["case", "solver", "its", "solves", "linearize", "export", "setup", "CG", "update", "ms / it",
@@ -604,25 +610,42 @@ def _command(args, overrides: dict) -> str:
             parts += [flag, str(value)]
     if args.timeout != 600:
         parts += ["--timeout", f"{args.timeout:g}"]
+    if getattr(args, "repeat", 1) != 1:
+        parts += ["--repeat", str(args.repeat)]
     for key, value in overrides.items():
         parts += ["--param", f"{key}={value}"]
     return " ".join(shlex.quote(p) for p in parts)
 
 
 def benchmark(cases: list[Case], solvers: list[str], overrides: dict, datasets: pathlib.Path, timeout: float,
-              progress=None) -> list[dict]:
-    """Every (case, solver) in its own child, in order; comparisons added per case."""
-    jobs = [(c, s) for c in cases for s in solvers]
-    rows = []
+              progress=None, repeat: int = 1) -> list[dict]:
+    """Every (case, solver) in its own child, ``repeat`` times per case with the solvers' order
+    rotated each round (interleaved: a slow spell of the machine hits every solver); one row per
+    (case, solver): its median run (see :func:`median_run`). Comparisons added per case."""
+    jobs = [(c, solvers[r % len(solvers):] + solvers[:r % len(solvers)]) for c in cases for r in range(repeat)]
+    jobs = [(c, s) for c, order in jobs for s in order]
+    runs: dict[tuple[str, str], list[dict]] = {}
     for i, (case, solver) in enumerate(jobs, 1):
         if progress:
             progress(f"[{i}/{len(jobs)}] {case.name} {solver} …")
-        rows.append(run_solver(case, solver, overrides, datasets, timeout))
+        row = run_solver(case, solver, overrides, datasets, timeout)
+        runs.setdefault((case.name, solver), []).append(row)
         if progress:
-            seconds = rows[-1].get("seconds")
-            progress(f"        {rows[-1]['status']}" + (f", {seconds:.2f} s" if seconds is not None else ""))
+            seconds = row.get("seconds")
+            progress(f"        {row['status']}" + (f", {seconds:.2f} s" if seconds is not None else ""))
+    rows = [median_run(runs[c.name, s]) for c in cases for s in solvers]
     add_comparisons(rows)
     return rows
+
+
+def median_run(runs: list[dict]) -> dict:
+    """The run of median time (the lower middle one of an even count) when all succeeded, else the
+    first that did not; with more than one run, every run's seconds in ``seconds_runs``."""
+    failed = [r for r in runs if r["status"] != "ok" or r.get("seconds") is None]
+    row = failed[0] if failed else sorted(runs, key=lambda r: r["seconds"])[(len(runs) - 1) // 2]
+    if len(runs) > 1:
+        row = {**row, "seconds_runs": [r.get("seconds") for r in runs], "repeats": len(runs)}
+    return row
 
 
 def _report_head(args, overrides: dict, solvers: list[str]) -> dict:
@@ -650,7 +673,7 @@ def run_bench(args) -> int:
     _check_inputs(cases, datasets, args.out)
     progress = (lambda msg: print(msg, file=sys.stderr, flush=True)) if sys.stderr.isatty() else None
     report = _report_head(args, overrides, solvers)
-    rows = benchmark(cases, solvers, overrides, datasets.resolve(), args.timeout, progress)
+    rows = benchmark(cases, solvers, overrides, datasets.resolve(), args.timeout, progress, args.repeat)
     report["cases"] = [{"name": c.name, "description": c.description, "poses": _case_poses(c, rows)} for c in cases]
     report["runs"] = rows
     report["direct_vs_schwarz"] = direct_vs_schwarz(rows)
@@ -667,7 +690,7 @@ def run_bench(args) -> int:
 
 
 def add_bench(sub) -> None:
-    from .commands import positive_float
+    from .commands import positive_float, positive_int
 
     p = sub.add_parser("bench", help="ours against GTSAM's LM (Cholesky, PCG, subgraph), one child process per run",
                        description="End-to-end solves of our default (LM, chordal start, automatic linear "
@@ -687,6 +710,9 @@ def add_bench(sub) -> None:
                    help="a SchwarzParams override for ours (repeatable), e.g. --param subdomain_size=1000")
     p.add_argument("--timeout", type=positive_float, default=600.0, metavar="SECONDS",
                    help="per-run wall-clock limit; the child's process group is killed (default 600)")
+    p.add_argument("--repeat", type=positive_int, default=1, metavar="N",
+                   help="run every (case, solver) N times, solvers interleaved (their order rotated each round); "
+                        "each row is its median run and lists every run's seconds (default 1)")
     p.add_argument("--datasets", default=None, metavar="DIR", help="folder of the datasets (../shared/datasets)")
     p.add_argument("--out", metavar="FILE.md", help="also write the Markdown report to this file (atomically)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")

@@ -180,3 +180,28 @@ def test_a_direct_run_that_would_not_fit_is_a_row_and_pairs_with_schwarz():
     assert pair["faster"] == "schwarz" and pair["auto_picked_faster"] is True
     assert math.isnan(pair["schwarz_over_direct"]) and _pair_row(pair)[1] == "does not fit"
     assert direct_vs_schwarz([schwarz, auto]) == []  # no direct row at all: nothing to compare
+
+
+def test_repeat_interleaves_the_solvers_and_keeps_each_median_run(monkeypatch):
+    """--repeat N: every (case, solver) N times, the solvers' order rotated each round; each row is its
+    median run with every run's seconds listed; a failed run is the row (never hidden by a median)."""
+    from gtsam_schwarz.apps import bench as B
+    calls, times = [], {"ours": iter([3.0, 1.0, 2.0]), "gtsam-lm": iter([5.0, 4.0, 6.0])}
+
+    def fake(case, solver, overrides, datasets, timeout, env=None):
+        calls.append(solver)
+        t = next(times[solver])
+        return {"case": case.name, "solver": solver, "status": "ok", "seconds": t, "final_error": 1.0, "tag": t}
+
+    monkeypatch.setattr(B, "run_solver", fake)
+    rows = B.benchmark([B.ALL_CASES["sq8x16"]], ["ours", "gtsam-lm"], {}, DATASETS, 60, repeat=3)
+    assert calls == ["ours", "gtsam-lm", "gtsam-lm", "ours", "ours", "gtsam-lm"]
+    by = {r["solver"]: r for r in rows}
+    assert by["ours"]["tag"] == 2.0 and by["ours"]["seconds_runs"] == [3.0, 1.0, 2.0] and by["ours"]["repeats"] == 3
+    assert by["gtsam-lm"]["seconds"] == 5.0 and by["ours"]["ratio_to_gtsam_lm"] == pytest.approx(0.4)
+    text = B.markdown({"runs": rows, "cases": [{"name": "sq8x16", "poses": 513}], "size": "tiny", "command": "c",
+                       "date": "d", "machine": B.machine(), "params": {}, "timeout": 60, "solvers": ["ours"]})
+    assert "median of 3 runs" in text and "- sq8x16 ours: 3.000, 1.000, 2.000" in text
+    bad = {"status": "crashed (SIGKILL)", "seconds": None}
+    assert B.median_run([{"status": "ok", "seconds": 1.0}, bad])["status"] == "crashed (SIGKILL)"
+    assert "seconds_runs" not in B.median_run([{"status": "ok", "seconds": 1.0}])
