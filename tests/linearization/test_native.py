@@ -203,8 +203,8 @@ def test_retract_matches_values_retract(kind):
 
 
 def test_pose2_values_by_retraction_equal_inserted_poses():
-    """A Pose2 graph's result Values (the Values read, copied, retracted by the local coordinates of
-    the final poses) equals the Values built pose by pose, also after the caller changed theirs."""
+    """A Pose2 graph's result Values (the Values read, retracted by the local coordinates of the final
+    poses) equals the Values built pose by pose; once the caller changed theirs, the poses are inserted."""
     rng = np.random.default_rng(4)
     graph, values = pose_graph("pose2", 60, "diagonal", rng)
     lin = NativeLinearizer(graph, values)
@@ -212,14 +212,17 @@ def test_pose2_values_by_retraction_equal_inserted_poses():
     assert lin._base is not None  # the fast path is taken
     x = rng.normal(size=lin.dim) * 2.0  # large steps: rotations up to ~π and beyond
     moved = lin.retract(st, x)
-    for k in lin.keys.tolist():  # the caller's Values changes after it was read: no effect
-        values.update(k, gtsam.Pose2(1e3, -1e3, 0.5))
+    assert lin._base_unchanged()
     fast = lin.values(moved)
     slow = gtsam.Values()
     lin._insert_poses(slow, moved, None, None)
-    assert fast.size() == slow.size() == len(lin.keys)
+    k0 = lin.keys.tolist()[7]
+    values.update(k0, gtsam.Pose2(1e3, -1e3, 0.5))  # the caller's Values changes after it was read
+    assert not lin._base_unchanged()
+    after = lin.values(moved)
+    assert fast.size() == slow.size() == after.size() == len(lin.keys)
     for k in lin.keys.tolist():
-        assert pose2_close(fast.atPose2(k), slow.atPose2(k), 1e-12)
+        assert pose2_close(fast.atPose2(k), slow.atPose2(k), 1e-12) and pose2_close(after.atPose2(k), slow.atPose2(k), 1e-14)
 
 
 def test_pose2_retract_tiny_rotation_is_accurate():
