@@ -36,12 +36,13 @@ class LinearSystem:
         return self.diagonal
 
     @contextmanager
-    def damped(self, d: np.ndarray):
+    def damped(self, d: np.ndarray, diagonal_values: np.ndarray | None = None):
         """H + diag(d) in H's own pattern and storage: H's diagonal is raised in place for the
-        ``with`` block and restored exactly after it (no copy of H: at 91 125 3D poses 180 MB)."""
+        ``with`` block and restored exactly after it (no copy of H: at 91 125 3D poses 180 MB).
+        ``diagonal_values``: H's diagonal when the caller has read it already (one gather less)."""
         diagonal = self.diagonal_positions()
         data = self.H.data
-        saved = data[diagonal]
+        saved = data[diagonal] if diagonal_values is None else diagonal_values
         D = sp.csr_matrix((data, self.H.indices, self.H.indptr), shape=self.H.shape, copy=False)
         D.has_sorted_indices = self.H.has_sorted_indices
         data[diagonal] = saved + d

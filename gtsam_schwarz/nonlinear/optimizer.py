@@ -162,7 +162,7 @@ class SchwarzOptimizer:
             return nullcontext(system.H)
         # the linearizer's known diagonal positions: a gather, not a search of every row
         diag = system.H.data[system.diagonal_positions()]
-        return system.damped(self._damping_diagonal(diag, lam, self._anchor_dofs))
+        return system.damped(self._damping_diagonal(diag, lam, self._anchor_dofs), diag)
 
     def _damping_diagonal(self, diag: np.ndarray, lam: float, anchors) -> np.ndarray:
         """λD (D = I, or diag(H) clipped to [1e-6, 1e32] with ``diagonal_damping``) plus, for gauge,
