@@ -15,6 +15,7 @@ from scipy.sparse import csgraph
 from scipy.sparse.linalg import splu
 
 from ..krylov import pcg_columns
+from ..solvers.cost import counted_simplicially, record_column_counts
 from ..solvers.sparse import SparseCholesky
 from ..util import sorted_unique
 
@@ -224,6 +225,8 @@ class _BlockSystem:
         C = sp.bsr_matrix((np.ones((nb, d, d), dtype=bool), bcols.astype(itype), bptr.astype(itype)),
                           shape=(n * d, n * d), blocksize=(d, d)).tocsr()   # the layout (1 byte per entry)
         self.indptr, self.indices, self.nnz = C.indptr, C.indices, nb * d * d
+        for a in (self.indptr, self.indices):   # a fixed pattern (others may keep it without a copy)
+            a.flags.writeable = False
         a = np.arange(d)
 
         def entries(p, v):
@@ -633,7 +636,7 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
     direct_path = not cg and rotation == "chordal"
     scalar = direct_path and d == 2
     system = _BlockSystem(n, 1 if scalar else d, i, j, anchors) if direct_path else None
-    factors = {}
+    factors, recorded = {}, []
 
     def direct(blocks, rhs, x_fixed):
         A, b = system.matrix(blocks, rhs, x_fixed)
@@ -643,6 +646,13 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
         key = (id(system), A.dtype.kind)   # one factorization per pattern and number type
         if key in factors:
             factors[key].refactor(A)
+        elif scalar and counted_simplicially(A):
+            # the pose graph's vertex pattern (diagonal and every edge), factorized simplicially as CHOLMOD
+            # would choose for so sparse a pattern: its column counts answer the cost model's next question
+            factors[key] = SparseCholesky(A, "the chordal normal equations", mode="simplicial")
+            if not recorded:
+                record_column_counts(A, factors[key])
+                recorded.append(key)
         else:
             factors[key] = SparseCholesky(A, "the chordal normal equations")
         return np.asarray(factors[key].solve(b)).reshape(rhs.shape)

@@ -43,9 +43,10 @@ class SparseCholesky:
 
     analyze_seconds = factor_seconds = 0.0
 
-    def __init__(self, K: sp.spmatrix, what: str = "local matrix", backend: str | None = None):
+    def __init__(self, K: sp.spmatrix, what: str = "local matrix", backend: str | None = None, mode: str = "auto"):
         self.what = what
         self.backend = backend or SPARSE_BACKEND
+        self.mode = mode  # CHOLMOD's: auto (supernodal where dense enough), simplicial or supernodal
         self.analyze(K)
         self.refactor(K)
 
@@ -56,7 +57,7 @@ class SparseCholesky:
         self.n = K.shape[0]
         self._factor = None
         if self.backend == "cholmod" and self.n:
-            self._analysis = _cholmod_analyze(K)
+            self._analysis = _cholmod_analyze(K, mode=getattr(self, "mode", "auto"))
         self.analyze_seconds = time.perf_counter() - t0
         return self
 
@@ -89,6 +90,10 @@ class SparseCholesky:
         except RuntimeError as exc:  # SuperLU: "Factor is exactly singular"
             raise SingularLocalMatrixError(f"{self.what} is singular: {exc}") from None
         return self
+
+    def column_counts(self) -> np.ndarray:
+        """Entries per column of the factor L (CHOLMOD; D on L's diagonal)."""
+        return np.diff(sp.csc_matrix(self._factor.LD()).indptr)
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         if self.n == 0:

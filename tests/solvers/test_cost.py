@@ -54,3 +54,24 @@ def test_supernodal_and_simplicial_surrogates_give_the_same_counts():
     from sksparse.cholmod import cholesky
     simplicial = np.diff(sp.csc_matrix(cholesky(S, mode="simplicial").LD()).indptr)
     assert np.array_equal(supernodal, simplicial)
+
+
+def test_the_2d_chordal_start_answers_the_cost_models_question_about_the_vertex_pattern(monkeypatch):
+    """The 2D chordal start factorizes the vertex pattern of H first (simplicially); its column counts,
+    remembered, are the ones the cost model computes itself, and the model then computes nothing."""
+    if SPARSE_BACKEND != "cholmod":
+        pytest.skip("CHOLMOD only")
+    from gtsam_schwarz import SchwarzOptimizer, SchwarzParams
+    from gtsam_schwarz.problems import square_loops
+    from gtsam_schwarz.solvers import cost
+
+    prob = square_loops(8, 6, sigma=0.05, seed=2)
+    opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(max_iterations=1))  # chordal start
+    (shape, indptr, indices), recorded = cost._LAST_COUNTS[0]
+    system = opt.linearizer.linearize(opt._state)
+    S = cost._surrogate(sp.csr_matrix(cost.vertex_pattern(system.H, opt.linearizer.offsets)))
+    assert cost._same_pattern(S, (shape, indptr, indices)) and cost.counted_simplicially(S)
+    assert np.array_equal(recorded, cost._counts(S))
+    monkeypatch.setattr(cost, "_counts", lambda S: pytest.fail("the remembered counts were not used"))
+    opt.optimize()
+    assert opt.summary()["linear_solver"]["used"] == "direct"
