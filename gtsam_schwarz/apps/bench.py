@@ -26,6 +26,8 @@ import tempfile
 import time
 from dataclasses import dataclass
 
+import numpy as np
+
 from . import peers
 from .report import markdown_table
 
@@ -426,7 +428,9 @@ def _header(report: dict) -> list[str]:
     return [f"# Benchmark: size {report['size']}", "",
             f"- command: `{report['command']}`",
             f"- date: {report['date']}",
-            f"- machine: {m['cpu_count']} CPUs ({m['cpu']}), {m['memory_gib']} GiB, {m['platform']}",
+            f"- machine: {m['cpu_count']} CPUs ({m['cpu']}), {m['memory_gib']} GiB, {m['platform']}"
+            + (f"; fresh memory's first touch {m['first_touch_ms_per_mib']:g} ms/MiB (64 MiB, before the runs)"
+               if m.get("first_touch_ms_per_mib") is not None else ""),
             f"- versions: Python {m['python']}, gtsam {m['gtsam']}, numpy {m['numpy']}, scipy {m['scipy']}, "
             f"gtsam-schwarz {m['gtsam_schwarz']}; local factorizations: {m.get('sparse_backend', '?')}",
             f"- ours: `SchwarzParams({', '.join(f'{k}={v!r}' for k, v in report['params'].items())})`; "
@@ -532,7 +536,19 @@ def machine() -> dict:
             "memory_gib": round(int(mem[0]) / 2**20, 1) if mem and mem[0].isdigit() else None,
             "platform": platform.platform(), "python": platform.python_version(), "gtsam": _version("gtsam"),
             "numpy": _version("numpy"), "scipy": _version("scipy"), "gtsam_schwarz": _version("gtsam-schwarz"),
-            "sparse_backend": _sparse_backend(), "g2opy": peers.g2o_version()}
+            "sparse_backend": _sparse_backend(), "g2opy": peers.g2o_version(),
+            "first_touch_ms_per_mib": first_touch_ms_per_mib()}
+
+
+def first_touch_ms_per_mib(mib: int = 64) -> float:
+    """Milliseconds per MiB to write fresh memory once (page faults and zeroing; in a virtual machine
+    also the host backing the page): 0.2-0.3 on this project's machines at best, 2.5-10 when the host
+    has taken the pages back. Every solver pays it for the memory it allocates, so it scales the rows."""
+    t = time.perf_counter()
+    a = np.ones(mib * 2**17)  # mib MiB of float64, written once
+    seconds = time.perf_counter() - t
+    del a
+    return round(1e3 * seconds / mib, 3)
 
 
 def _sparse_backend() -> str:

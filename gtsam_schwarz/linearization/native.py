@@ -591,9 +591,8 @@ class NativeLinearizer:
             size += K.hsize
         self._zero = size          # S[size] = 0: entries only GTSAM-linearized factors fill
         self._src_size = size + 1
-        src = P.source_index(puts, fill=size)
-        self._src = src.astype(np.int32) if size < 2**31 - 1 else src  # (entry-sized: half the memory)
-        del src
+        # entry-sized: int32 where the source array allows (half the memory)
+        self._src = P.source_index(puts, fill=size, dtype=np.int32 if size < 2**31 - 1 else np.int64)
         self._other_pos = None  # (indptr, indices, positions) of the last H of the other factors
 
     # -----------------------------------------------------------------------------------------

@@ -965,15 +965,16 @@ class BlockPattern:
             raise KeyError("block not in pattern")
         return k
 
-    def source_index(self, assignments, fill: int) -> np.ndarray:
+    def source_index(self, assignments, fill: int, dtype=np.int64) -> np.ndarray:
         """Gather index of the CSR data: entry (a, b) of block (rows[t], cols[t]) takes source
         base[t] + coef[a, b] for every (rows, cols, base, coef) in ``assignments`` (blocks at most once),
-        others ``fill``. Written a chunk of blocks at a time: no (t, d, d) temporaries."""
+        others ``fill``. Written a chunk of blocks at a time: no (t, d, d) temporaries. ``dtype``: of
+        the index (int32 where the source is that small: half the memory, written directly)."""
         if self.uniform:   # entry (a, b) of block k in row v: bptr[v]·(d² − d) + k·d + a·rowlen[v]·d + b
             d = self.d
             blocks = [(self.block_index(rows, cols), base, coef) for rows, cols, base, coef in assignments]
             covered = sum(len(k) for k, _, _ in blocks) == len(self.block_keys)   # each block at most once
-            src = np.empty(self.nnz, dtype=np.int64) if covered else np.full(self.nnz, fill, dtype=np.int64)
+            src = np.empty(self.nnz, dtype=dtype) if covered else np.full(self.nnz, fill, dtype=dtype)
             a = np.arange(d)
             for k, base, coef in blocks:
                 for lo in range(0, len(k), _CHUNK):   # chunks of blocks: small temporaries, local writes
@@ -982,7 +983,7 @@ class BlockPattern:
                     row = (self._bptr[v] * (d * d - d) + kc * d)[:, None] + (self._rowlen[v] * d)[:, None] * a
                     src[row[:, :, None] + a] = np.asarray(base[lo:lo + _CHUNK])[:, None, None] + coef
             return src
-        src = np.full(self.nnz, fill, dtype=np.int64)
+        src = np.full(self.nnz, fill, dtype=dtype)
         for rows, cols, base, coef in assignments:
             k = self.block_index(rows, cols)
             dr, dc = np.shape(coef)

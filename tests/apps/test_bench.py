@@ -107,6 +107,7 @@ def test_direct_vs_schwarz_section_per_case(report):
 def test_report_records_machine_command_and_params(report):
     m = report["machine"]
     assert m["cpu_count"] >= 1 and m["gtsam"] and m["numpy"] and m["scipy"]
+    assert 0 < m["first_touch_ms_per_mib"] < 1e3  # measured: the machine's cost of fresh memory
     assert report["command"].startswith("gtsam-schwarz bench --size tiny")
     assert report["params"] == {"method": "lm", "preconditioner": "auto"}
     assert report["params_full"]["max_iterations"] == 100
