@@ -402,6 +402,20 @@ def test_2d_direct_path_in_complex_numbers_matches_real_cg():
         np.testing.assert_allclose(direct.rotations[4], R[4], atol=1e-12)
 
 
+def test_2d_direct_path_analyses_the_pattern_once(monkeypatch):
+    """2D, isotropic translations: the positions x + iy reuse the rotations' complex factor (one
+    symbolic analysis of the pattern, two numeric factorizations)."""
+    from gtsam_schwarz.solvers.sparse import SparseCholesky
+    calls = []
+    analyze = SparseCholesky.analyze
+    monkeypatch.setattr(SparseCholesky, "analyze", lambda self, K: (calls.append(K.dtype.kind), analyze(self, K))[1])
+    rng = np.random.default_rng(8)
+    R, p = trajectory(300, 2, rng)
+    e, Rij, tij = pose_graph(R, p, 90, rng, noise=0.1)
+    result = chordal_initialization(300, e, Rij, tij, rng.uniform(0.5, 4.0, len(e)), solver="direct")
+    assert calls == ["c"] and np.all(np.isfinite(result.positions))
+
+
 def test_3d_direct_path_with_isotropic_translations_matches_real_cg():
     """3D direct: isotropic translation information solved as one scalar Laplacian with three
     right-hand sides (its own one-unknown pattern), anisotropic on the 3×3-block pattern; both the
