@@ -220,7 +220,8 @@ def add_solve(sub) -> None:
     p.add_argument("--max-iterations", type=nonnegative_int, default=100, metavar="N",
                    help="most nonlinear iterations (default 100)")
     p.add_argument("--inexact", action="store_true",
-                   help="Eisenstat-Walker forcing: loose CG tolerance far from the solution")
+                   help="Eisenstat-Walker forcing (a loose CG tolerance far from the solution) whatever the linear "
+                        "solver (default: for Schwarz-preconditioned CG only, not for the direct factorization)")
     p.add_argument("-o", "--output", metavar="OUT.g2o|OUT.tum",
                    help="write the optimized poses, atomically, in the format of the extension: .g2o (the graph "
                         "with optimized vertices) or .tum (trajectory: key tx ty tz qx qy qz qw); the folder "
@@ -318,7 +319,7 @@ def run_solve(args) -> int:
     params = SchwarzParams(method=args.method, preconditioner=args.preconditioner, subdomains=args.subdomains,
                            partition=args.partition, overlap=args.overlap, cg_tol=args.cg_tol,
                            max_iterations=args.max_iterations, iteration_hook=hook,
-                           forcing="eisenstat-walker" if args.inexact else "none", memory_limit=args.memory_limit)
+                           forcing="eisenstat-walker" if args.inexact else "auto", memory_limit=args.memory_limit)
     with progress:
         progress.start(f"{pathlib.Path(args.file).name} ({loaded.poses} poses, {args.method} + {args.preconditioner})")
         row = run_ours(loaded.graph, loaded.initial, params, loaded.arrays)

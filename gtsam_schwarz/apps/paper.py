@@ -197,7 +197,7 @@ def paper_params(preconditioner: str, loops: int, overlap: int, settings: Settin
     stopping only on ‖g‖ ≤ 1e-8 or ‖g‖ ≤ 1e-6‖g₀‖ (GTSAM's error-decrease rules off)."""
     return SchwarzParams(method="gn", preconditioner=preconditioner, subdomains=loops, partition="segments",
                          overlap=overlap, coarse_modes="unit", interface_grouping="vertices",
-                         cg_tol=settings.cg_tol, cg_max_iterations=settings.cg_cap,
+                         cg_tol=settings.cg_tol, cg_max_iterations=settings.cg_cap, forcing="none",
                          max_iterations=settings.max_gn, gradient_tol=settings.gradient_tol,
                          relative_gradient_tol=settings.relative_gradient_tol,
                          relative_error_tol=0.0, absolute_error_tol=-1.0, error_tol=0.0)

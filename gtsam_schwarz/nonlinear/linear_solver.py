@@ -444,19 +444,26 @@ def make_linear_solver(params: LinearSolverParams, offsets: np.ndarray, translat
 
 class Forcing:
     """CG tolerance per Newton step: fixed ``cg_tol``, or Eisenstat–Walker's choice 2 forcing term
-    η_k = 0.9 (‖g_k‖/‖g_{k−1}‖)², safeguarded by 0.9 η_{k−1}² and capped at ``forcing_max``.
+    η_k = 0.9 (‖g_k‖/‖g_{k−1}‖)², safeguarded by 0.9 η_{k−1}² and capped at ``forcing_max``;
+    "auto": the forcing term while ``krylov()`` says the steps are solved by preconditioned CG, else
+    ``cg_tol`` (a direct factorization, whose tolerance only its lagged CG sees).
 
     ``exact_next`` makes the next solve exact (after a small decrease from an inexact step, or to
     retry a rejected LM step)."""
 
-    def __init__(self, params: LinearSolverParams):
+    def __init__(self, params: LinearSolverParams, krylov=None):
         self.params = params
+        self.krylov = krylov if krylov is not None else (lambda: True)
         self.previous = None  # (gradient norm, η) of the previous linear solve
         self.exact_next = False
 
+    def inexact(self) -> bool:
+        mode = self.params.forcing
+        return mode == "eisenstat-walker" or (mode == "auto" and bool(self.krylov()))
+
     def tolerance(self, gnorm: float) -> float:
         p = self.params
-        if p.forcing == "none" or self.exact_next:
+        if not self.inexact() or self.exact_next:
             return p.cg_tol
         if self.previous is None:
             eta = p.forcing_max

@@ -67,7 +67,9 @@ class SchwarzOptimizer:
                                                               linearizer.translation_mask())
         if hasattr(self.linear_solver, "on_choice"):  # auto: decided on the first solve
             self.linear_solver.on_choice = lambda choice: choice != "direct" and self._release_scratch()
-        self.forcing = Forcing(p.linear_solver)
+        # inexact Newton steps where CG with a Schwarz preconditioner solves them ("" = the automatic
+        # choice is still open: the first solve's tolerance matters only to CG)
+        self.forcing = Forcing(p.linear_solver, krylov=lambda: getattr(self.linear_solver, "choice", "") != "direct")
         self._hooks = [h for h in (p.iteration_hook, verbose_printer() if p.verbose else None) if h is not None]
 
     # -- GTSAM-like accessors ------------------------------------------------------------

@@ -7,7 +7,9 @@ import pytest
 from conftest import dataset, gtsam_gauss_newton, pose2_array, pose2_difference
 from gtsam_schwarz import LINEAR_SOLVERS, SchwarzOptimizer, SchwarzParams, square_loops
 
-FIXED = dict(initialization="file", relative_error_tol=0.0, absolute_error_tol=-1.0, gradient_tol=0.0, relative_gradient_tol=0.0)
+# a fixed number of exact steps (forcing "none"), compared with GTSAM's step for step
+FIXED = dict(initialization="file", relative_error_tol=0.0, absolute_error_tol=-1.0, gradient_tol=0.0, relative_gradient_tol=0.0,
+             forcing="none")
 
 
 @pytest.fixture(scope="module")
@@ -248,7 +250,8 @@ def test_newton_decrement_stops_the_last_solve_early():
     pb = survey3d(4, 10, 10)
     runs = {}
     for rule in (True, False):
-        opt = SchwarzOptimizer(pb.graph, pb.initial, SchwarzParams(preconditioner="rgdsw-linear", newton_decrement=rule))
+        opt = SchwarzOptimizer(pb.graph, pb.initial, SchwarzParams(preconditioner="rgdsw-linear", newton_decrement=rule,
+                                                                   forcing="none"))  # the rule alone
         opt.optimize()
         runs[rule] = opt
     on, off = runs[True], runs[False]
@@ -261,3 +264,27 @@ def test_newton_decrement_stops_the_last_solve_early():
     assert abs(e_on - e_off) <= 1e-7 * e_off
     lm = gtsam.LevenbergMarquardtOptimizer(pb.graph, pb.initial, gtsam.LevenbergMarquardtParams()).optimize()
     assert abs(e_on - pb.graph.error(lm)) <= 1e-6 * pb.graph.error(lm)
+
+
+def test_automatic_forcing_is_inexact_for_schwarz_cg_and_exact_for_direct():
+    """forcing="auto" (the default): Eisenstat–Walker tolerances where Schwarz-preconditioned CG
+    solves the steps, cg_tol where the direct factorization does (its lagged CG included); both reach
+    GTSAM LM's error to 1e-6."""
+    from gtsam_schwarz.nonlinear.linear_solver import Forcing
+    from gtsam_schwarz.nonlinear.params import LinearSolverParams
+    from gtsam_schwarz.problems.survey import survey3d
+
+    p = LinearSolverParams()
+    assert p.forcing == "auto"
+    assert Forcing(p, krylov=lambda: False).tolerance(1.0) == p.cg_tol
+    assert Forcing(p, krylov=lambda: True).tolerance(1.0) == p.forcing_max
+    pb = survey3d(4, 10, 10)
+    lm = pb.graph.error(gtsam.LevenbergMarquardtOptimizer(pb.graph, pb.initial, gtsam.LevenbergMarquardtParams()).optimize())
+    schwarz = SchwarzOptimizer(pb.graph, pb.initial, SchwarzParams(preconditioner="rgdsw-linear"))
+    schwarz.optimize()
+    assert any(h.cg_tolerance > p.cg_tol for h in schwarz.history)
+    direct = SchwarzOptimizer(pb.graph, pb.initial, SchwarzParams(preconditioner="direct"))
+    direct.optimize()
+    assert all(h.cg_tolerance <= p.cg_tol for h in direct.history)
+    for opt in (schwarz, direct):
+        assert opt.converged and abs(opt.error() - lm) <= 1e-6 * lm
