@@ -288,3 +288,19 @@ def test_automatic_forcing_is_inexact_for_schwarz_cg_and_exact_for_direct():
     assert all(h.cg_tolerance <= p.cg_tol for h in direct.history)
     for opt in (schwarz, direct):
         assert opt.converged and abs(opt.error() - lm) <= 1e-6 * lm
+
+
+def test_cost_model_counts_the_forcing_terms_cg_iterations():
+    """The automatic choice predicts Schwarz with the CG iterations its solves will take: fewer under
+    the forcing term ("auto", the default) than to cg_tol ("none"); a prediction within the margin
+    keeps the direct solver."""
+    from gtsam_schwarz.nonlinear.linear_solver import AutoSolver, CostModel
+    from gtsam_schwarz.nonlinear.params import LinearSolverParams
+
+    exact, inexact = CostModel(), CostModel(inexact=True)
+    assert inexact.two_level_iterations < exact.two_level_iterations
+    assert inexact.schwarz_floor(10**6) < exact.schwarz_floor(10**6)
+    offsets, mask = np.arange(0, 31, 3), np.ones(30, bool)
+    assert AutoSolver(LinearSolverParams(), offsets, mask).model.two_level_iterations == inexact.two_level_iterations
+    assert AutoSolver(LinearSolverParams(forcing="none"), offsets, mask).model.two_level_iterations == exact.two_level_iterations
+    assert 0 < AutoSolver.SCHWARZ_MARGIN < 1
