@@ -299,7 +299,7 @@ def test_cost_model_counts_the_forcing_terms_cg_iterations():
 
     exact, inexact = CostModel(), CostModel(inexact=True)
     assert inexact.two_level_iterations < exact.two_level_iterations
-    assert inexact.schwarz_floor(10**6) < exact.schwarz_floor(10**6)
+    assert inexact.schwarz_floor(10**6) == exact.schwarz_floor(10**6)  # the shortcut to direct stays where it was
     offsets, mask = np.arange(0, 31, 3), np.ones(30, bool)
     assert AutoSolver(LinearSolverParams(), offsets, mask).model.two_level_iterations == inexact.two_level_iterations
     assert AutoSolver(LinearSolverParams(forcing="none"), offsets, mask).model.two_level_iterations == exact.two_level_iterations
