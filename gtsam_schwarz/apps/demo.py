@@ -170,8 +170,9 @@ def fill_part(surveys, progress) -> list[dict]:
             row[solver] = _one_solve(H, rhs, offsets, mask, geometry, solver)
             progress.done()
         progress.start(f"fill: {name}, auto's choice")
-        auto = AutoSolver(LinearSolverParams(), offsets, mask)
-        auto.choose(H)  # what `auto` would run (both were just measured)
+        # what `auto` would run for a solve to 1e-8, as both were just measured (exact steps: forcing "none")
+        auto = AutoSolver(LinearSolverParams(forcing="none"), offsets, mask)
+        auto.choose(H)
         progress.done()
         row["auto_choice"], row["auto_reason"] = auto.choice, auto.reason
         row["schwarz_over_direct"] = row[FILL_SCHWARZ]["seconds"] / row["direct"]["seconds"]
