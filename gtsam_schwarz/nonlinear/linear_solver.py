@@ -289,7 +289,6 @@ class CostModel:
 
     def __init__(self, inexact: bool = False):
         """``inexact``: Schwarz's steps are solved to Eisenstat–Walker tolerances (fewer CG iterations)."""
-        self.cg_iterations = self.CG_ITERATIONS
         self.two_level_iterations = self.TWO_LEVEL_ITERATIONS_INEXACT if inexact else self.TWO_LEVEL_ITERATIONS
 
     def factor_seconds(self, flops: float) -> float:
@@ -303,12 +302,12 @@ class CostModel:
 
     def schwarz_floor(self, nnz_H: int) -> float:
         """A lower bound of the Schwarz time per solve: the SpMVs of its CG iterations."""
-        return self.SCHWARZ_OVERHEAD * self.cg_iterations * self.SPMV * nnz_H
+        return self.SCHWARZ_OVERHEAD * self.CG_ITERATIONS * self.SPMV * nnz_H
 
     def schwarz(self, local, nnz_H: int) -> float:
         setup = 2 * (self.factor_seconds(local.flops) + self.ENTRY * local.nnz_L) + \
             self.COARSE_COLUMNS * self.SOLVE * local.nnz_L
-        cg = self.cg_iterations * (self.SPMV * nnz_H + self.SOLVE * local.nnz_L)
+        cg = self.CG_ITERATIONS * (self.SPMV * nnz_H + self.SOLVE * local.nnz_L)
         return self.SCHWARZ_OVERHEAD * (setup + cg)
 
     # two-level Schwarz from its own symbolic estimate (schwarz.memory.MemoryEstimate): K columns of
@@ -372,7 +371,7 @@ class AutoSolver(LinearSolver):
             self.choice, self.chosen = "direct", self._direct(t_direct)
             self.reason = (f"nnz(L) {direct.nnz_L:.3g} ({direct.fill:.1f}x nnz(H)), {direct.flops:.3g} flops: "
                            f"direct {t_direct:.3g} s per solve (predicted) < the {floor:.3g} s of "
-                           f"{self.model.cg_iterations} CG iterations' SpMVs alone")
+                           f"{self.model.CG_ITERATIONS} CG iterations' SpMVs alone")
             return self._chose()
         dec = cg._decompose(H)
         M = create_preconditioner(self.schwarz_name, H.shape[0], dec, self.translation_mask,
