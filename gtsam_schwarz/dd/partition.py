@@ -71,15 +71,18 @@ def auto_partition(structure: GraphStructure, n_subdomains: int) -> np.ndarray:
 # poses per subdomain by pose dimension (dofs per pose). In 3D a subdomain's factor and its share
 # of Φ grow fast with its size; 64-pose subdomains cost less per solve (setup + CG) than 500-pose
 # ones although CG takes a few more iterations (survey 32x32x32: 6.9 vs 10.6 s, 47 vs 38 CG;
-# docs/survey.md, "Subdomain size in 3D"). In 2D, 500 keeps CG near 35.
-DEFAULT_SUBDOMAIN_SIZE = {3: 500, 6: 64}
+# docs/survey.md, "Subdomain size in 3D"). In 2D, 250 poses: with inexact steps (8–14 CG per solve)
+# the setup dominates, and it shrinks with the subdomains (lawnmower 600x600, LM with rgdsw-linear:
+# 500 poses 42.2 s, 250 30.7 s, 150 28.8 s, 100 27.4 s) while a solve to 1e-8 stays within 40 CG
+# (300x300: 35 at 500, 38 at 250, 43 at 150; docs/survey.md, "Subdomain size in 2D").
+DEFAULT_SUBDOMAIN_SIZE = {3: 250, 6: 64}
 
 
 def default_subdomains(n_vertices: int, subdomain_size: int | None = None, dofs_per_pose: int = 3) -> int:
     """Number of subdomains chosen from the size: about ``subdomain_size`` poses each (None: by
     the pose dimension, :data:`DEFAULT_SUBDOMAIN_SIZE`)."""
     if subdomain_size is None:
-        subdomain_size = DEFAULT_SUBDOMAIN_SIZE.get(dofs_per_pose, 500)
+        subdomain_size = DEFAULT_SUBDOMAIN_SIZE.get(dofs_per_pose, 250)
     return max(1, int(round(n_vertices / max(subdomain_size, 1))))
 
 
