@@ -80,14 +80,27 @@ class _Group:
         self.A_II = Gather(lambda M: M[interior][:, interior])
         self.A_IG = Gather(lambda M: M[interior][:, gamma])
         self.factor = None
+        self._released = None  # A's pattern when the factor's numbers and the gathers were dropped
 
     def refactor(self, A):
-        pattern = self.A_II.pattern
+        pattern = self.A_II.pattern or self._released
         A_II = self.A_II(A)
-        if isinstance(self.factor, SparseCholesky) and self.A_II.pattern is pattern:
-            self.factor.refactor(A_II)  # same pattern: numbers only
+        same = pattern is not None and (self.A_II.pattern is pattern or pattern.matches(A))
+        self._released = None
+        if isinstance(self.factor, SparseCholesky) and same:
+            self.factor.refactor(A_II)  # same pattern: numbers only (the analysis is kept by release)
         else:
             self.factor = factorize(A_II, "the interior matrix A_II")
+
+    def release(self) -> None:
+        """Drop the factor's numbers and the gathers' positions; keep the symbolic analysis."""
+        self._released = self.A_II.pattern
+        if isinstance(self.factor, SparseCholesky):
+            self.factor.release_numeric()
+        else:
+            self.factor = None
+        self.A_II.forget()
+        self.A_IG.forget()
 
 
 def _digest(*arrays: np.ndarray) -> bytes:
@@ -251,10 +264,8 @@ class HarmonicExtension:
         for group, gplan in zip(self.groups, plan["groups"]):
             group.refactor(A)
             self._extend(group, group.A_IG(A), Phi_G, plan, gplan, data)
-            if not self.keep_factors:  # the next refactor analyses anew and finds the gathers' positions again
-                group.factor = None
-                group.A_II.forget()
-                group.A_IG.forget()
+            if not self.keep_factors:  # the next refactor finds the gathers' positions again
+                group.release()
         data[plan["nnz_I"]:] = gamma_vals[plan["g_order"]]
         local = sp.csr_matrix((data, plan["indices"], plan["indptr"]), shape=(n, nc))
         # (AΦ)_I = A_II Φ_I + A_IΓ Φ_Γ = 0 for the harmonic extension, so Φᵀ A Φ = Φ_Γᵀ (AΦ)_Γ:

@@ -167,10 +167,13 @@ class BlockDiagonalSolver:
         return self
 
     def release(self) -> None:
-        """Drop the factorizations (to bound the memory); the next :meth:`update` factorizes anew,
-        symbolic analysis included."""
+        """Drop the numeric factorizations (to bound the memory); the next :meth:`update` refactorizes
+        with the symbolic analyses kept."""
         for chunk in self._chunks or ():
-            chunk[3] = None
+            if isinstance(chunk[3], SparseCholesky):
+                chunk[3].release_numeric()
+            else:
+                chunk[3] = None
         self._dense = None
 
     def matvec(self, x: np.ndarray) -> np.ndarray:

@@ -91,6 +91,12 @@ class SparseCholesky:
             raise SingularLocalMatrixError(f"{self.what} is singular: {exc}") from None
         return self
 
+    def release_numeric(self) -> None:
+        """Drop the numeric factor (its memory) and keep the symbolic analysis: the next
+        :meth:`refactor` allocates a factor again without a new ordering (lawnmower 600x600: the
+        analyses of the subdomain and interior blocks cost 0.7 s per rebuild)."""
+        self._factor = None
+
     def column_counts(self) -> np.ndarray:
         """Entries per column of the factor L (CHOLMOD; D on L's diagonal)."""
         return np.diff(sp.csc_matrix(self._factor.LD()).indptr)

@@ -78,9 +78,14 @@ def test_one_factorization_at_a_time_gives_the_same_preconditioner(survey):
     low.memory.low_memory = True
     assert low.memory.peak(None, True) != low.memory.peak(None, False)
     low.update(H, geometry)
-    assert all(g.factor is None and g.A_II.pattern is None and g.A_IG.pattern is None for g in low.extension.groups)
+    # the interior factors' numbers are dropped after the extension, their symbolic analyses kept
+    assert all(g.factor._factor is None and g.A_II.pattern is None and g.A_IG.pattern is None for g in low.extension.groups)
     assert low.extension._A_G.pattern is None  # the interface-row gathers' positions are found again too
-    low.update(H, geometry)  # a rebuild: factorizations analysed anew, gather positions found anew
+    analyses = [g.factor._analysis for g in low.extension.groups]
+    low.release()  # as before the next build: the subdomain factors' numbers go too
+    assert all(c[3]._factor is None for c in low.one_level.solver._chunks)
+    low.update(H, geometry)  # a rebuild: numbers only (the analyses kept), gather positions found anew
+    assert [g.factor._analysis for g in low.extension.groups] == analyses
     x = np.random.default_rng(2).standard_normal(H.shape[0])
     assert np.allclose(low.apply(x), full.apply(x), rtol=1e-10, atol=1e-12 * np.abs(full.apply(x)).max())
 
