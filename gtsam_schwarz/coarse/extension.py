@@ -137,7 +137,7 @@ class HarmonicExtension:
         self.keep_factors = True  # False: each group's A_II factorization is dropped after its solve
         self.groups: list[_Group] = []
         self.order = None  # rows of Φ's local storage: the groups' interior dofs, then Γ
-        self._A_G = None
+        self._local_row = None  # Φ's local row of every global dof (the inverse of ``order``)
         self._cached = None  # (signature of the interface values, plan)
 
     def _plan(self, gamma_rows, gamma_cols, col_subdomains) -> dict:
@@ -175,9 +175,8 @@ class HarmonicExtension:
             plan["offset"], plan["row_start"] = offset, np.r_[0, np.cumsum(plan["k_row"])]
             offset += len(ind)
         self.order = np.r_[np.concatenate([grp.interior for grp in self.groups]), self.gamma]
-        order = self.order
-        G = self.gamma
-        self._A_G = Gather(lambda M: M[G][:, order])
+        self._local_row = np.empty(self.n, dtype=np.int32 if self.n < 2**31 - 1 else np.int64)
+        self._local_row[self.order] = np.arange(self.n)
         indices = np.r_[np.concatenate(indices), gamma_cols[g_order].astype(idx)]
         if indptr[-1] < 2**31 - 1:
             indptr = indptr.astype(np.int32)
@@ -271,21 +270,33 @@ class HarmonicExtension:
         # (AΦ)_I = A_II Φ_I + A_IΓ Φ_Γ = 0 for the harmonic extension, so Φᵀ A Φ = Φ_Γᵀ (AΦ)_Γ:
         # only the interface rows of A enter (Φ is dense on subdomain interiors; A Φ would not be)
         # in blocks of interface rows: A_Γ·Φ (|Γ| × n_c, K_i columns per row) never exists whole
-        Phi_GG, A_G = local[plan["nI"]:], self._A_G(A)
+        Phi_GG = local[plan["nI"]:]
         step = self.a0_block_rows(len(self.gamma))
         A0 = None
         for r0 in range(0, len(self.gamma), step):
             # (A_Γ·Φ)ᵀ Φ_Γ = A_0ᵀ: the big product's transpose is a free CSC view, and only Φ_Γ's few
             # entries per row are converted (Φ_Γᵀ·(A_Γ·Φ) converted the product: 1 s at 91k poses)
-            part = (A_G[r0:r0 + step] @ local).T @ Phi_GG[r0:r0 + step]
+            part = (self._interface_rows(A, r0, r0 + step) @ local).T @ Phi_GG[r0:r0 + step]
             A0 = part if A0 is None else A0 + part
             del part
-        del A_G, Phi_GG
-        if not self.keep_factors:  # at 91 125 3D poses these gathers held 170 MB; finding them again costs 1.7 s
-            self._A_G.forget()
+        del Phi_GG
         A0 = (A0 + A0.T).tocsr()  # symmetric to rounding: its mean with the transpose, scaled in place
         A0.data *= 0.5
         return CoarseBasis(local, self.order), A0
+
+    def _interface_rows(self, A: sp.csr_matrix, r0: int, r1: int) -> sp.csr_matrix:
+        """Rows Γ[r0:r1] of A, their columns numbered as Φ's local rows: entries taken by row
+        ranges, nothing kept between builds (a scipy submatrix with stored positions took 2.6 s per
+        build at 91 125 3D poses in the low-memory mode, which drops them; this takes ~0.1 s)."""
+        rows = self.gamma[r0:r1]
+        start = A.indptr[rows]
+        count = A.indptr[rows + 1] - start
+        indptr = np.zeros(len(rows) + 1, dtype=np.int64)
+        np.cumsum(count, out=indptr[1:])
+        at = np.repeat(start - indptr[:-1], count) + np.arange(indptr[-1])  # positions in A.data
+        B = sp.csr_matrix((A.data[at], self._local_row[A.indices[at]], indptr), shape=(len(rows), self.n))
+        B.has_sorted_indices = False  # (renumbered columns; scipy's product does not need them sorted)
+        return B
 
     A0_BLOCKS = 8  # at most this many blocks of interface rows for A_0 (each block's A_Γ·Φ 1/8 of the whole)
     A0_MIN_BLOCK_ROWS = 20000  # smaller interfaces: one product (3D 32x32x32: |Γ| 114k rows, 6 blocks)
