@@ -138,7 +138,7 @@ class HarmonicExtension:
         self.groups: list[_Group] = []
         self.order = None  # rows of Φ's local storage: the groups' interior dofs, then Γ
         self._local_row = None  # Φ's local row of every global dof (the inverse of ``order``)
-        self._cached = None  # (signature of the interface values, plan)
+        self._cached = None  # (signature of the interface values, plan, A's pattern, read-only value arrays)
 
     def _plan(self, gamma_rows, gamma_cols, col_subdomains) -> dict:
         """Symbolic part of one extension: the groups, the pattern of Φ_Γ (interface rows) and of
@@ -251,11 +251,16 @@ class HarmonicExtension:
         if not A.has_sorted_indices:
             A = A.sorted_indices()
         col_subdomains = sp.csr_matrix(col_subdomains)
-        signature = _digest(gamma_rows, gamma_cols, col_subdomains.indptr, col_subdomains.indices)
+        arrays = (gamma_rows, gamma_cols, col_subdomains.indptr, col_subdomains.indices)
         cached = self._cached
+        # the coarse space's cached (read-only) pattern again: no digest; other arrays are not kept
+        same = cached is not None and cached[3] is not None and all(a is b for a, b in zip(arrays, cached[3]))
+        signature = cached[0] if same else _digest(*arrays)
         if cached is None or not cached[2].matches(A) or cached[0] != signature:
             self._cached = None
-            self._cached = cached = (signature, self._plan(gamma_rows, gamma_cols, col_subdomains), pattern_of(A))
+            frozen = not any(a.flags.writeable for a in arrays)
+            self._cached = cached = (signature, self._plan(gamma_rows, gamma_cols, col_subdomains), pattern_of(A),
+                                     arrays if frozen else None)
         plan = cached[1]
         data = np.empty(len(plan["indices"]))
         Phi_G = sp.csr_matrix((gamma_vals[plan["g_order"]], plan["indices"][plan["nnz_I"]:], plan["ptr_G"]),

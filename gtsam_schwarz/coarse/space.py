@@ -70,7 +70,14 @@ def coarse_columns(decomposition: Decomposition, interface: Interface, kind: str
     elif kind in COMPONENT_SPACES:
         col_subdomains = sp.csr_matrix(interface.component_subdomains()[column_component])
     else:
-        col_subdomains = column_subdomains(interface, offsets, rows, cols, len(column_component))
+        last = interface.__dict__.get("_column_subdomains")  # the same (cached) triplet pattern: reused
+        if last is not None and last[0] is rows and last[1] is cols:
+            col_subdomains = last[2]
+        else:
+            col_subdomains = column_subdomains(interface, offsets, rows, cols, len(column_component))
+            if not (rows.flags.writeable or cols.flags.writeable):  # a cached pattern: so is this
+                col_subdomains.indptr.flags.writeable = col_subdomains.indices.flags.writeable = False
+                interface.__dict__["_column_subdomains"] = (rows, cols, col_subdomains)
     result = rows, cols, vals, column_component, col_subdomains
     if keep:  # (a frozen dataclass's own dict, as the partitions of unity)
         interface.__dict__["_kept_coarse_columns"] = (key, geometry, result)

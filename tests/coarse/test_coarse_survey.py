@@ -159,3 +159,30 @@ def test_3d_weak_scaling():
     large, large_size = _survey3d_cg((8, 24, 24), 37, "rgdsw-linear")
     assert large <= 1.2 * small, (small, large)
     assert large <= 50 and max(small_size, large_size) <= 12
+
+
+def test_rigid_values_reuse_the_pattern_of_the_first_poses(survey):
+    """The rigid-mode triplets' pattern is found once per interface: new poses only give new
+    numbers. With headings along the axes many values are exactly zero; they stay as explicit
+    zeros, so poses that make them nonzero give the same Φ_Γ as a fresh interface."""
+    from gtsam_schwarz.dd.geometry import VertexGeometry
+    _, H, dec, geometry, _ = survey
+    offsets = dec.structure.offsets
+    itf = find_interface(dec, "two-hop")
+    aligned = VertexGeometry(positions=geometry.positions, rotations=np.repeat(np.eye(2)[None], len(geometry.positions), 0))
+    rows0, cols0, vals0, _ = interface_values(itf, offsets, "rgdsw-linear", aligned)
+    assert np.any(vals0 == 0.0)  # exact zeros at the axis-aligned headings
+    rng = np.random.default_rng(3)
+    angle = rng.normal(scale=0.2, size=len(geometry.positions))
+    turn = np.stack([np.stack([np.cos(angle), -np.sin(angle)], 1), np.stack([np.sin(angle), np.cos(angle)], 1)], 1)
+    moved = VertexGeometry(positions=geometry.positions + rng.normal(size=geometry.positions.shape),
+                           rotations=geometry.rotations @ turn)
+    rows, cols, vals, comp = interface_values(itf, offsets, "rgdsw-linear", moved)
+    assert rows is rows0 and cols is cols0  # the cached pattern
+    fresh = interface_values(find_interface(dec, "two-hop"), offsets, "rgdsw-linear", moved)
+    shape = (H.shape[0], int(cols.max()) + 1)
+    P = sp.csr_matrix((vals, (rows, cols)), shape=shape)
+    Q = sp.csr_matrix((fresh[2], (fresh[0], fresh[1])), shape=shape)
+    assert np.array_equal(comp, fresh[3])
+    assert abs(P - Q).max() == 0.0 and np.count_nonzero(vals) == Q.nnz
+    assert np.count_nonzero(vals) > np.count_nonzero(vals0)
