@@ -172,12 +172,12 @@ def _rigid_pattern(interface: Interface, offsets, kind, pou, verts, starts, dim:
     mode_dim, mode = np.nonzero(mask)  # row-major: the order of M[:, mask]
     itype = np.int32 if max(int(offsets[-1]), len(node_col) * n_modes) < 2**31 - 1 else np.int64
     rows = (starts[:, None] + mode_dim[None, :]).astype(itype).ravel()
-    cols = (node_col[pair_node][:, None] * n_modes + mode[None, :]).ravel()
-    # renumber columns densely (drops modes of nodes without a vertex)
-    used, cols = sorted_unique(cols, return_inverse=True)
-    cols = cols.astype(itype).ravel()
+    # columns numbered densely by node (nodes without a vertex dropped): every mode of a node has an
+    # entry at each of its vertices, so the nodes are renumbered, not the (pairs x entries) columns
+    used, node = sorted_unique(node_col[pair_node], return_inverse=True)
+    cols = (node.astype(itype).reshape(-1, 1) * n_modes + mode[None, :].astype(itype)).ravel()
     rows.flags.writeable = cols.flags.writeable = False  # shared by every rebuild (recognised by identity)
-    result = rows, cols, pairs, mask, nodes[used // max(n_modes, 1)]
+    result = rows, cols, pairs, mask, nodes[np.repeat(used, n_modes)]
     cache[key] = (offsets, *result)
     return result
 
