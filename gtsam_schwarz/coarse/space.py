@@ -37,16 +37,17 @@ class CoarseSpace:
 def gdsw_coarse_space(A: sp.spmatrix, decomposition: Decomposition, interface: Interface,
                       kind: str = "gdsw", geometry: VertexGeometry | None = None,
                       rotation: bool = True, translation_mask: np.ndarray | None = None,
-                      extension: HarmonicExtension | None = None) -> CoarseSpace:
+                      extension: HarmonicExtension | None = None, recycle=None) -> CoarseSpace:
     """GDSW (``kind="gdsw"``), RGDSW (``"rgdsw"``) or any space in :data:`COARSE_SPACES`
     (``"gdsw-linear"``, ``"rgdsw-linear"``: hat functions along interface entities, which need an
     interface from ``find_interface(..., group="two-hop")``), with or without rotations.
 
-    Pass the same ``extension`` for successive matrices to reuse its symbolic work."""
+    Pass the same ``extension`` for successive matrices to reuse its symbolic work, and a previous
+    basis of it that is no longer used as ``recycle`` to reuse its storage."""
     rows, cols, vals, column_component, col_subdomains = coarse_columns(
         decomposition, interface, kind, geometry, rotation, translation_mask)
     extension = extension or HarmonicExtension(decomposition, interface)
-    Phi, A0 = extension(A, rows, cols, vals, col_subdomains)
+    Phi, A0 = extension(A, rows, cols, vals, col_subdomains, recycle)
     return CoarseSpace(basis=Phi, A0=A0, column_component=column_component)
 
 

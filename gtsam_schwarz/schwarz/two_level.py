@@ -124,9 +124,12 @@ class TwoLevelSchwarz(SumOperator):
         low = self.memory.low_memory
         self.extension.block_columns = self.memory.block_columns
         self.extension.keep_factors = not low
-        self.release(factors=low)  # the previous Φ is not needed while the new one is built
+        # the previous Φ is not needed while the new one is built: its storage takes the new numbers
+        previous = self.coarse_space.basis if self.coarse_space is not None else None
+        self.release(factors=low)
         self.coarse_space = gdsw_coarse_space(A, self.decomposition, self.interface, self.kind, geometry,
-                                              self.rotation, self.translation_mask, self.extension)
+                                              self.rotation, self.translation_mask, self.extension, recycle=previous)
+        del previous
         self.one_level.update(A)
         self.coarse = CoarseCorrection(self.coarse_space)
         self.parts = [self.one_level, self.coarse]

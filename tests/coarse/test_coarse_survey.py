@@ -186,3 +186,21 @@ def test_rigid_values_reuse_the_pattern_of_the_first_poses(survey):
     assert np.array_equal(comp, fresh[3])
     assert abs(P - Q).max() == 0.0 and np.count_nonzero(vals) == Q.nnz
     assert np.count_nonzero(vals) > np.count_nonzero(vals0)
+
+
+def test_rebuild_writes_the_new_basis_into_the_old_storage(survey):
+    """A rebuild of a two-level operator overwrites its previous Φ's storage (same plan) and gives
+    the preconditioner a fresh build gives."""
+    _, H, dec, geometry, mask = survey
+    M = make_preconditioner("rgdsw-linear", H, dec, mask, geometry=geometry)
+    storage = M.coarse_space.basis.local.data
+    H2 = H.copy()
+    H2.data = H2.data * (1.0 + 0.5 * np.random.default_rng(1).random(H2.nnz))
+    H2 = sp.csr_matrix((H2 + H2.T) * 0.5)  # new numbers, same pattern, symmetric
+    H2.sort_indices()
+    M.update(H2, geometry)
+    assert np.shares_memory(M.coarse_space.basis.local.data, storage)
+    fresh = make_preconditioner("rgdsw-linear", H2, dec, mask, geometry=geometry)
+    x = np.random.default_rng(2).standard_normal(H.shape[0])
+    y = fresh.apply(x)
+    assert np.allclose(M.apply(x), y, rtol=1e-10, atol=1e-12 * np.abs(y).max())
