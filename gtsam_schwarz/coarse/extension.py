@@ -14,7 +14,7 @@ import scipy.sparse as sp
 
 from ..dd.decomposition import Decomposition
 from ..dd.interface import Interface
-from ..solvers import Gather, SparseCholesky, factorize
+from ..solvers import SparseCholesky, Submatrix, factorize
 from ..solvers.gather import pattern_of
 
 
@@ -76,10 +76,10 @@ def column_groups(K_sub: np.ndarray, weight: np.ndarray, max_groups: int = 3) ->
 class _Group:
     """The interior dofs of some subdomains, their A_II and A_IΓ gathers and A_II's factorization."""
 
-    def __init__(self, interior: np.ndarray, sub: np.ndarray, gamma: np.ndarray):
+    def __init__(self, interior: np.ndarray, sub: np.ndarray, gamma: np.ndarray, n: int):
         self.interior, self.sub = interior, sub
-        self.A_II = Gather(lambda M: M[interior][:, interior])
-        self.A_IG = Gather(lambda M: M[interior][:, gamma])
+        self.A_II = Submatrix(interior, interior, n)
+        self.A_IG = Submatrix(interior, gamma, n)
         self.factor = None
         self._released = None  # A's pattern when the factor's numbers and the gathers were dropped
 
@@ -161,7 +161,7 @@ class HarmonicExtension:
         self.groups, plans, indices, k_rows = [], [], [], []
         for g in np.unique(group_of_sub[self.sub]):  # at most max_groups
             rows_g = np.flatnonzero(group_of_sub[self.sub] == g)
-            group = _Group(self.interior[rows_g], self.sub[rows_g], self.gamma)
+            group = _Group(self.interior[rows_g], self.sub[rows_g], self.gamma, self.n)
             k_row = counts[group.sub]
             K, nI = int(k_row.max()), len(rows_g)
             prefix = np.arange(K)[None, :] < k_row[:, None]

@@ -12,7 +12,7 @@ from gtsam_schwarz.dd import auto_partition, decompose, interface_count, segment
 from gtsam_schwarz.io import load_graph
 from gtsam_schwarz.linearization import HessianPattern, LinearSystem
 from gtsam_schwarz.solvers import (SPARSE_BACKEND, BlockDiagonalSolver, Gather, SingularLocalMatrixError,
-                                         SparseCholesky, block_diagonal)
+                                         SparseCholesky, Submatrix, block_diagonal)
 
 from conftest import dataset
 
@@ -58,6 +58,29 @@ def test_gather_follows_new_numbers_and_new_patterns(two_points):
     g = Gather(lambda M: M[rows][:, rows])
     for H in (H1, H2, H1):
         assert abs(g(H) - sp.csr_matrix(H)[rows][:, rows]).max() == 0
+
+
+def test_submatrix_gather_equals_scipy_indexing(two_points):
+    """Positions from row ranges and a column map: the same entries, pattern and order as scipy's
+    A[rows][:, cols], also with empty rows (the last one included)."""
+    km, H1, H2 = two_points
+    n = H1.shape[0]
+    A = sp.csr_matrix(H1).tolil()
+    A[n - 1, :] = 0.0
+    A[3, :] = 0.0
+    A = sp.csr_matrix(A)
+    A.eliminate_zeros()
+    rng = np.random.default_rng(0)
+    rows = np.unique(np.r_[3, rng.choice(n, n // 3, replace=False), n - 1])
+    cols = np.sort(rng.choice(n, n // 2, replace=False))
+    g = Submatrix(rows, cols, n)
+    for M in (A, H2, A):
+        M = sp.csr_matrix(M)
+        M.sort_indices()
+        B, ref = g(M), M[rows][:, cols]
+        ref.sort_indices()
+        assert np.array_equal(B.indptr, ref.indptr) and np.array_equal(B.indices, ref.indices)
+        assert np.array_equal(B.data, ref.data)
 
 
 @pytest.mark.parametrize("backend", ["superlu"] + (["cholmod"] if SPARSE_BACKEND == "cholmod" else []))
