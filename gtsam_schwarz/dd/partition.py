@@ -70,12 +70,13 @@ def auto_partition(structure: GraphStructure, n_subdomains: int) -> np.ndarray:
 
 # poses per subdomain by pose dimension (dofs per pose). In 3D a subdomain's factor and its share
 # of Φ grow fast with its size; 64-pose subdomains cost less per solve (setup + CG) than 500-pose
-# ones although CG takes a few more iterations (survey 32x32x32: 6.9 vs 10.6 s, 47 vs 38 CG;
-# docs/survey.md, "Subdomain size in 3D"). In 2D, 250 poses: with inexact steps (8–14 CG per solve)
+# ones although CG takes a few more iterations (survey 32x32x32: 6.9 vs 10.6 s, 47 vs 38 CG to 1e-8;
+# docs/survey.md, "Subdomain size in 3D"), and with inexact steps (11–18 CG per solve) 32 poses
+# beat 64 (LM, survey 45x45x45: 38.5 vs 44.6 s; 32x32x32: 10.6 vs 12.0 s). In 2D, 250 poses: with inexact steps (8–14 CG per solve)
 # the setup dominates, and it shrinks with the subdomains (lawnmower 600x600, LM with rgdsw-linear:
 # 500 poses 42.2 s, 250 30.7 s, 150 28.8 s, 100 27.4 s) while a solve to 1e-8 stays within 40 CG
 # (300x300: 35 at 500, 38 at 250, 43 at 150; docs/survey.md, "Subdomain size in 2D").
-DEFAULT_SUBDOMAIN_SIZE = {3: 250, 6: 64}
+DEFAULT_SUBDOMAIN_SIZE = {3: 250, 6: 32}
 
 
 def default_subdomains(n_vertices: int, subdomain_size: int | None = None, dofs_per_pose: int = 3) -> int:
