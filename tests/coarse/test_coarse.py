@@ -131,3 +131,12 @@ def test_rank_deficient_coarse_basis_drops_dependent_vectors():
     assert C.dropped == cs.size
     r = np.random.default_rng(0).normal(size=km.dim)
     assert np.allclose(C.matvec(r), M.coarse.matvec(r), rtol=1e-6, atol=1e-9 * np.abs(r).max())
+
+
+def test_default_subdomain_size_by_dimension_and_graph_size():
+    """About 250 poses per 2D subdomain; 32 per 3D subdomain, 64 on 3D graphs under 16 384 poses."""
+    from gtsam_schwarz.dd import default_subdomains
+    assert default_subdomains(360_000, None, 3) == 1440
+    assert default_subdomains(4_608, None, 6) == 72
+    assert default_subdomains(91_125, None, 6) == 2848
+    assert default_subdomains(91_125, 1000, 6) == 91  # an explicit size wins

@@ -85,7 +85,7 @@ def main(argv=None) -> int:
     w.add_argument("--loops-per-rank", type=int, default=32)
     w.add_argument("--points", type=int, default=64)
     w.add_argument("--subdomains-per-rank", type=int, default=None,
-                   help="subdomains = this × K (default: the solver's, about 250 poses each in 2D, 32 in 3D)")
+                   help="subdomains = this × K (default: the solver's, about 250 poses each in 2D, 32 in 3D (64 under 16 384 poses))")
     s = sub.add_parser("strong", help="one problem on each rank count")
     s.add_argument("file", nargs="?")
     s.add_argument("--square-loops", nargs=2, type=int, metavar=("LOOPS", "POINTS"))
