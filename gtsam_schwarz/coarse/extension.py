@@ -16,6 +16,7 @@ from ..dd.decomposition import Decomposition
 from ..dd.interface import Interface
 from ..solvers import SparseCholesky, Submatrix, factorize
 from ..solvers.gather import pattern_of
+from ..util.sparse import row_block
 
 
 class CoarseBasis:
@@ -283,13 +284,13 @@ class HarmonicExtension:
         # (AΦ)_I = A_II Φ_I + A_IΓ Φ_Γ = 0 for the harmonic extension, so Φᵀ A Φ = Φ_Γᵀ (AΦ)_Γ:
         # only the interface rows of A enter (Φ is dense on subdomain interiors; A Φ would not be)
         # in blocks of interface rows: A_Γ·Φ (|Γ| × n_c, K_i columns per row) never exists whole
-        Phi_GG = local[plan["nI"]:]
+        Phi_GG = row_block(local, plan["nI"], n)
         step = self.a0_block_rows(len(self.gamma))
         A0 = None
         for r0 in range(0, len(self.gamma), step):
             # (A_Γ·Φ)ᵀ Φ_Γ = A_0ᵀ: the big product's transpose is a free CSC view, and only Φ_Γ's few
             # entries per row are converted (Φ_Γᵀ·(A_Γ·Φ) converted the product: 1 s at 91k poses)
-            part = (self._interface_rows(A, r0, r0 + step) @ local).T @ Phi_GG[r0:r0 + step]
+            part = (self._interface_rows(A, r0, r0 + step) @ local).T @ row_block(Phi_GG, r0, min(r0 + step, len(self.gamma)))
             A0 = part if A0 is None else A0 + part
             del part
         del Phi_GG
