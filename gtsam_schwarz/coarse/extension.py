@@ -16,7 +16,7 @@ from ..dd.decomposition import Decomposition
 from ..dd.interface import Interface
 from ..solvers import SparseCholesky, Submatrix, factorize
 from ..solvers.gather import pattern_of
-from ..util.sparse import row_block
+from ..util.sparse import row_block, row_entries
 
 
 class CoarseBasis:
@@ -303,11 +303,7 @@ class HarmonicExtension:
         ranges, nothing kept between builds (a scipy submatrix with stored positions took 2.6 s per
         build at 91 125 3D poses in the low-memory mode, which drops them; this takes ~0.1 s)."""
         rows = self.gamma[r0:r1]
-        start = A.indptr[rows]
-        count = A.indptr[rows + 1] - start
-        indptr = np.zeros(len(rows) + 1, dtype=np.int64)
-        np.cumsum(count, out=indptr[1:])
-        at = np.repeat(start - indptr[:-1], count) + np.arange(indptr[-1])  # positions in A.data
+        at, indptr = row_entries(A, rows)
         B = sp.csr_matrix((A.data[at], self._local_row[A.indices[at]], indptr), shape=(len(rows), self.n))
         B.has_sorted_indices = False  # (renumbered columns; scipy's product does not need them sorted)
         return B

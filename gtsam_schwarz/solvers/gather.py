@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from ..util.sparse import row_entries
+
 
 class SparsityPattern:
     """A CSR pattern (indptr, indices) to recognise matrices whose symbolic work can be reused."""
@@ -96,15 +98,11 @@ class Submatrix(Gather):
         self.n_cols = len(cols)
 
     def _positions(self, A: sp.csr_matrix):
-        rows = self.rows
         itype = np.int32 if A.nnz < 2**31 - 1 else np.int64
-        start = A.indptr[rows]
-        count = (A.indptr[rows + 1] - start).astype(np.int64)
-        before = np.cumsum(count) - count
-        at = (np.repeat(start - before, count) + np.arange(int(count.sum()))).astype(itype)  # rows' entries
+        at, ranges = row_entries(A, self.rows, itype)  # the rows' entries, row after row
         local = self.col_map[A.indices[at]]
         keep = local >= 0
         kept = np.zeros(len(at) + 1, dtype=np.int64)  # entries kept before each position
         np.cumsum(keep, out=kept[1:])
-        indptr = kept[np.r_[before, len(at)]].astype(itype)  # the rows' ranges are consecutive in at
-        return at[keep], local[keep], indptr, (len(rows), self.n_cols)
+        indptr = kept[ranges].astype(itype)
+        return at[keep], local[keep], indptr, (len(self.rows), self.n_cols)
