@@ -73,8 +73,8 @@ def auto_partition(structure: GraphStructure, n_subdomains: int) -> np.ndarray:
 # ones although CG takes a few more iterations (survey 32x32x32: 6.9 vs 10.6 s, 47 vs 38 CG to 1e-8;
 # docs/survey.md, "Subdomain size in 3D"), and with inexact steps (11–18 CG per solve) 32 poses
 # beat 64 on large graphs (LM, survey 45x45x45: 38.5 vs 44.6 s; 32x32x32: 10.6 vs 12.0 s) but not on
-# small ones (8x24x24, 4 608 poses: 1.48 vs 1.35 s), which keep 64 (``SMALL_GRAPH_SUBDOMAIN_SIZE``). In 2D, 250 poses: with inexact steps (8–14 CG per solve)
-# the setup dominates, and it shrinks with the subdomains (lawnmower 600x600, LM with rgdsw-linear:
+# small ones (8x24x24, 4 608 poses: 1.48 vs 1.35 s), which keep 64 (``SMALL_GRAPH_SUBDOMAIN_SIZE``).
+# In 2D, 250 poses: with inexact steps (8–14 CG per solve) the setup dominates, and it shrinks with the subdomains (lawnmower 600x600, LM with rgdsw-linear:
 # 500 poses 42.2 s, 250 30.7 s, 150 28.8 s, 100 27.4 s) while a solve to 1e-8 stays within 40 CG
 # (300x300: 35 at 500, 38 at 250, 43 at 150; docs/survey.md, "Subdomain size in 2D").
 DEFAULT_SUBDOMAIN_SIZE = {3: 250, 6: 32}
