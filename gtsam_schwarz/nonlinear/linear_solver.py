@@ -268,22 +268,24 @@ class CostModel:
     """Seconds per linear solve, predicted from the symbolic analysis (``solvers.cost``).
 
     Calibrated on this project's 2-core machine (CHOLMOD, one BLAS thread) from the factor, solve and
-    SpMV times of M3500, city10000, sphere2500, torus3D and the model problems
-    (docs/performance.md, "automatic linear solver"): a numeric factorization costs
-    ``FLOP``·flops + ``ENTRY``·nnz(L), a triangular solve pair ``SOLVE``·nnz(L), an SpMV
-    ``SPMV``·nnz(H). Schwarz: the subdomain factorization twice (overlapping blocks and interiors),
+    SpMV times of M3500, city10000, sphere2500, the model problems, lawnmower and 3D surveys
+    (docs/survey.md, "cost model"): a numeric factorization costs :meth:`factor_seconds`, a
+    triangular solve pair ``SOLVE``·nnz(L), an SpMV ``SPMV``·nnz(H). Schwarz: the subdomain factorization twice (overlapping blocks and interiors),
     harmonic extension with ``COARSE_COLUMNS`` right-hand sides, ``CG_ITERATIONS`` iterations.
     """
 
-    FLOP = 3e-10
-    FLOP_KNEE = 1e9  # beyond this many flops, the rate of large supernodes
-    FLOP_LARGE = 1.2e-11  # 3D survey 32x32x32: 8.7e11 flops, nnz(L) 2.0e8 factorized in 14.8 s (2e-11 predicted 22.1 s)
-    ENTRY = 2e-8
+    FLOP = 7e-10  # small supernodes (flops / nnz(L) below ~90: city10000 and sparser)
+    SUPERNODE = 6e-8  # per entry of L where the supernodes grow with the fill (flops / nnz(L) 90 to 4000)
+    FLOP_LARGE = 1.5e-11  # the rate of the largest supernodes (3D 32x32x32 and 45x45x45: 1.5e-11, 1.9e-11)
+    ENTRY = 1e-8
     SOLVE = 2e-9
     SPMV = 3e-9
-    CG_ITERATIONS = 30  # also the floor's count under the forcing term (8–14 per solve there): a graph whose
-    # direct solve costs less than that floor is a tie at best for Schwarz (sphere2500, lawn100x100), and
-    # the two-level estimate would cost it 40–60 ms
+    CG_ITERATIONS = 30
+    # the screen before the two-level estimate (which costs 40-60 ms on the small graphs): Schwarz solves
+    # measured 55-110 SpMVs' time each (sphere2500 55, lawn100x100 69, city10000 84, survey8x24x24 110,
+    # counted as SPMV·nnz(H)); a direct solve predicted below SCHWARZ_OVERHEAD·SCREEN_ITERATIONS = 84 of
+    # them goes direct unestimated
+    SCREEN_ITERATIONS = 14
     COARSE_COLUMNS = 20
     SCHWARZ_OVERHEAD = 6.0  # gathers, interface values, Φ and A₀ assembly, Python: measured 2–10× the counted work
 
@@ -291,22 +293,23 @@ class CostModel:
         """``inexact``: Schwarz's steps are solved to Eisenstat–Walker tolerances (fewer CG iterations)."""
         self.two_level_iterations = self.TWO_LEVEL_ITERATIONS_INEXACT if inexact else self.TWO_LEVEL_ITERATIONS
 
-    def factor_seconds(self, flops: float) -> float:
-        """Small supernodes run at ~3 GFlop/s, large ones (3D fill) at ~80 (BLAS-3 in CHOLMOD's
-        supernodes): measured 1.25e9 flops in 0.27 s (torus3D), 1.46e11 flops + 6.4e7 nnz(L) in 3.8 s
-        and 8.7e11 + 2.0e8 in 14.8 s (3D surveys of 16 384 and 32 768 poses)."""
-        return self.FLOP * min(flops, self.FLOP_KNEE) + self.FLOP_LARGE * max(flops - self.FLOP_KNEE, 0.0)
+    def factor_seconds(self, flops: float, nnz_L: float) -> float:
+        """A numeric factorization. The rate per flop grows with the supernodes, whose size follows
+        c = flops / nnz(L), about as c itself: measured 7.3e-10 s per flop at c = 85 (city10000),
+        1.4e-10 at 450 (lawnmower 300x300), 1.5e-11 at 4400 (3D survey 32x32x32). So from c ≈ 90 the
+        time is about ``SUPERNODE``·nnz(L) (2D and 3D, H and the chordal rotation system alike),
+        below at ``FLOP`` per flop, never faster than ``FLOP_LARGE`` per flop; ``ENTRY``·nnz(L) on top."""
+        return self.ENTRY * nnz_L + max(self.FLOP_LARGE * flops, min(self.FLOP * flops, self.SUPERNODE * nnz_L))
 
     def direct(self, cost) -> float:
-        return self.factor_seconds(cost.flops) + (self.ENTRY + self.SOLVE) * cost.nnz_L
+        return self.factor_seconds(cost.flops, cost.nnz_L) + self.SOLVE * cost.nnz_L
 
     def schwarz_floor(self, nnz_H: int) -> float:
-        """A lower bound of the Schwarz time per solve: the SpMVs of its CG iterations."""
-        return self.SCHWARZ_OVERHEAD * self.CG_ITERATIONS * self.SPMV * nnz_H
+        """The screen for "Schwarz cannot win": a solve costs about this many SpMVs at least."""
+        return self.SCHWARZ_OVERHEAD * self.SCREEN_ITERATIONS * self.SPMV * nnz_H
 
     def schwarz(self, local, nnz_H: int) -> float:
-        setup = 2 * (self.factor_seconds(local.flops) + self.ENTRY * local.nnz_L) + \
-            self.COARSE_COLUMNS * self.SOLVE * local.nnz_L
+        setup = 2 * self.factor_seconds(local.flops, local.nnz_L) + self.COARSE_COLUMNS * self.SOLVE * local.nnz_L
         cg = self.CG_ITERATIONS * (self.SPMV * nnz_H + self.SOLVE * local.nnz_L)
         return self.SCHWARZ_OVERHEAD * (setup + cg)
 
@@ -317,15 +320,16 @@ class CostModel:
     PHI_APPLY = 1.3e-9  # per entry of Φ and product (Φ z, Φᵀ x)
     TWO_LEVEL_ITERATIONS = 40  # rgdsw-linear: 36–46 per fresh solve on the surveys
     TWO_LEVEL_ITERATIONS_INEXACT = 14  # with the forcing term: 12–14 per solve in 3D, 9 in 2D
-    TWO_LEVEL_OVERHEAD = 1.3  # measured per solve / predicted before it: 0.8 (13x38x38), 0.33 (8x24x24), 0.8 (2D 300x300)
+    # measured per solve / the counted work: 0.59-0.65 (city10000, lawn100x100, sphere2500), 0.96 (survey8x24x24),
+    # 1.0 (M3500); the counted iterations cost 0.6-0.9 of their prediction, the setup 0.8-1.5
+    TWO_LEVEL_OVERHEAD = 0.75
 
     def two_level(self, est, nnz_H: int) -> float:
         """Seconds per solve of CG with a two-level preconditioner: subdomain and interior
         factorizations, the K-column extension, Φ's assembly, and per iteration an SpMV, the local
         solves and Φ, Φᵀ."""
         L, s = est.local, est.interior_share
-        setup = (self.factor_seconds(L.flops) + self.ENTRY * L.nnz_L
-                 + self.factor_seconds(L.flops * s * s) + self.ENTRY * L.nnz_L * s
+        setup = (self.factor_seconds(L.flops, L.nnz_L) + self.factor_seconds(L.flops * s * s, L.nnz_L * s)
                  + self.SOLVE_COLUMN * est.K * s * L.nnz_L + self.PHI_ENTRY * est.nnz_phi)
         iteration = self.SPMV * nnz_H + self.SOLVE * L.nnz_L + 2 * self.PHI_APPLY * est.nnz_phi
         return self.TWO_LEVEL_OVERHEAD * (setup + self.two_level_iterations * iteration)
@@ -367,11 +371,11 @@ class AutoSolver(LinearSolver):
         floor = self.model.schwarz_floor(H.nnz)
         direct_bytes = FACTOR_BYTES * direct.nnz_L + MATRIX_BYTES * H.nnz
         available = available_memory(self.params.memory_limit)
-        if t_direct <= floor and direct_bytes <= available:  # Schwarz cannot win: not even its SpMVs fit in the direct time
+        if t_direct <= floor and direct_bytes <= available:  # the screen: Schwarz cannot win, no estimate
             self.choice, self.chosen = "direct", self._direct(t_direct)
             self.reason = (f"nnz(L) {direct.nnz_L:.3g} ({direct.fill:.1f}x nnz(H)), {direct.flops:.3g} flops: "
-                           f"direct {t_direct:.3g} s per solve (predicted) < the {floor:.3g} s of "
-                           f"{self.model.CG_ITERATIONS} CG iterations' SpMVs alone")
+                           f"direct {t_direct:.3g} s per solve (predicted) < {floor:.3g} s, the time of "
+                           f"{self.model.SCHWARZ_OVERHEAD * self.model.SCREEN_ITERATIONS:g} SpMVs (Schwarz cannot win)")
             return self._chose()
         dec = cg._decompose(H)
         M = create_preconditioner(self.schwarz_name, H.shape[0], dec, self.translation_mask,

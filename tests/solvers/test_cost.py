@@ -75,3 +75,62 @@ def test_the_2d_chordal_start_answers_the_cost_models_question_about_the_vertex_
     monkeypatch.setattr(cost, "_counts", lambda S: pytest.fail("the remembered counts were not used"))
     opt.optimize()
     assert opt.summary()["linear_solver"]["used"] == "direct"
+
+
+def test_factor_time_model_follows_nnz_of_L_where_the_supernodes_grow():
+    """The factorization model: flops at the small-supernode rate for sparse factors, about
+    SUPERNODE·nnz(L) once flops / nnz(L) passes ~90 (2D and 3D alike), never faster than the
+    peak rate per flop."""
+    from gtsam_schwarz.nonlinear.linear_solver import CostModel
+
+    m = CostModel()
+    small = m.factor_seconds(10 * 1e6, 1e6)  # flops / nnz(L) = 10: a chain-like factor
+    assert small == pytest.approx(m.ENTRY * 1e6 + m.FLOP * 1e7)
+    mid = [m.factor_seconds(c * 1e6, 1e6) for c in (200, 400, 1000)]
+    assert mid == pytest.approx([(m.ENTRY + m.SUPERNODE) * 1e6] * 3)  # the same nnz(L), the same time
+    huge = m.factor_seconds(1e5 * 1e6, 1e6)
+    assert huge == pytest.approx(m.ENTRY * 1e6 + m.FLOP_LARGE * 1e11)
+    assert small < mid[0] < huge
+
+
+def _first_H(graph, initial):
+    """The optimizer (chordal start) and its first Gauss-Newton matrix."""
+    from gtsam_schwarz import SchwarzOptimizer, SchwarzParams
+
+    opt = SchwarzOptimizer(graph, initial, SchwarzParams(max_iterations=1))
+    return opt, opt.linearizer.linearize(opt._state).H
+
+
+@pytest.mark.slow
+def test_auto_takes_schwarz_on_a_small_lawnmower_survey():
+    """lawnmower 100x100 (10 000 2D poses, nnz(L) 7.7x nnz(H)): Schwarz measured 0.39-0.51 s against
+    direct's 0.44-0.60 s (docs/benchmarks.md): the automatic choice estimates both and takes Schwarz."""
+    if SPARSE_BACKEND != "cholmod":
+        pytest.skip("CHOLMOD's analysis")
+    from gtsam_schwarz.nonlinear.linear_solver import AutoSolver
+    from gtsam_schwarz.nonlinear.params import LinearSolverParams
+    from gtsam_schwarz.problems import lawnmower
+
+    prob = lawnmower(100, 100)
+    opt, H = _first_H(prob.graph, prob.initial)
+    auto = AutoSolver(LinearSolverParams(), opt.linearizer.offsets, np.ones(H.shape[0], bool))
+    auto.choose(H, lambda: opt.linearizer.geometry(opt._state))
+    assert auto.choice == "rgdsw-linear", auto.reason
+
+
+@pytest.mark.datasets
+def test_auto_screens_sphere2500_to_direct_without_a_schwarz_estimate():
+    """sphere2500 (nnz(L) 6.6x nnz(H), 3D): direct measured 0.29-0.38 s against Schwarz's 0.37-0.48 s;
+    its predicted direct solve is below the screen, so no decomposition is made for the estimate."""
+    if SPARSE_BACKEND != "cholmod":
+        pytest.skip("CHOLMOD's analysis")
+    from conftest import dataset
+    from gtsam_schwarz.io import load_graph
+    from gtsam_schwarz.nonlinear.linear_solver import AutoSolver
+    from gtsam_schwarz.nonlinear.params import LinearSolverParams
+
+    g = load_graph(dataset("sphere2500.g2o"))
+    opt, H = _first_H(g.graph, g.initial)
+    auto = AutoSolver(LinearSolverParams(), opt.linearizer.offsets, np.ones(H.shape[0], bool))
+    auto.choose(H)
+    assert auto.choice == "direct" and "cannot win" in auto.reason, auto.reason
