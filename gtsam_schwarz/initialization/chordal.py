@@ -168,13 +168,10 @@ def _normal_equations(n: int, d: int, i, j, S, W, c=None):
     A_ij −= SᵀW, A_ji −= WS; b_i −= SᵀWc, b_j += Wc."""
     parts = _edge_blocks(S, W)
     StW = -parts[2]
-    blocks = np.concatenate(parts)
-    rows = np.concatenate([i, j, i, j])
-    cols = np.concatenate([i, j, j, i])
-    a = np.arange(d)
-    r = np.broadcast_to(rows[:, None, None] * d + a[None, :, None], blocks.shape)
-    k = np.broadcast_to(cols[:, None, None] * d + a[None, None, :], blocks.shape)
-    A = sp.csr_matrix((blocks.ravel(), (r.ravel(), k.ravel())), shape=(n * d, n * d))
+    # summed into the block pattern of the graph (the pattern's sort is over node pairs, not over the
+    # 4m·d² entries as a triplet conversion's: 3D 91 125 poses 0.25 s against 0.9-1.4 s)
+    A, _ = _BlockSystem(n, d, i, j, np.zeros(0, dtype=np.int64)).matrix(parts, np.zeros((n * d, 1)),
+                                                                        np.zeros((0, 1)))
     b = np.zeros((n, d))
     if c is not None:
         Wc = np.einsum("kab,kb->ka", W, c)
