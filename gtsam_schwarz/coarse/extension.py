@@ -74,6 +74,21 @@ def column_groups(K_sub: np.ndarray, weight: np.ndarray, max_groups: int = 3) ->
     return (K_sub > u[i]).astype(np.int64) + (K_sub > u[j]).astype(np.int64)
 
 
+def _rows_to_csr(X: np.ndarray, k_row: np.ndarray, out: np.ndarray, rows_per_block: int = 2048) -> None:
+    """out = the first k_row[r] entries of every row r of X, row after row (CSR data). X is
+    column-major (CHOLMOD's solution): it is read in blocks of rows made row-major in cache, not
+    entry by entry across columns (2D 360 000 poses: 0.58 → 0.1 s per build)."""
+    K = X.shape[1]
+    k = np.arange(K)
+    at = 0
+    for r0 in range(0, X.shape[0], rows_per_block):  # a loop over blocks of rows (a few hundred)
+        r1 = min(r0 + rows_per_block, X.shape[0])
+        kr = k_row[r0:r1]
+        block = np.ascontiguousarray(X[r0:r1])[k[None, :] < kr[:, None]]
+        out[at:at + len(block)] = block
+        at += len(block)
+
+
 class _Group:
     """The interior dofs of some subdomains, their A_II and A_IΓ gathers and A_II's factorization."""
 
@@ -235,12 +250,13 @@ class HarmonicExtension:
                 del keep
             X = group.factor(B.reshape(k1 - k0, nI).T)  # F-ordered nI × (k1 − k0)
             del B
-            sel = np.arange(k0, k1)[None, :] < k_row[:, None]
             if k0 == 0 and k1 == K:
-                out[:] = X[sel]  # row-major prefix of every row: Φ_I's CSR order
+                _rows_to_csr(X, k_row, out)  # row-major prefix of every row: Φ_I's CSR order
             else:
+                sel = np.arange(k0, k1)[None, :] < k_row[:, None]
                 out[(gplan["row_start"][:-1, None] + np.arange(k0, k1)[None, :])[sel]] = X[sel]
-            del X, sel
+                del sel
+            del X
 
     def __call__(self, A: sp.spmatrix, gamma_rows: np.ndarray, gamma_cols: np.ndarray,
                  gamma_vals: np.ndarray, col_subdomains: sp.csr_matrix,

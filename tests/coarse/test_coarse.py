@@ -140,3 +140,18 @@ def test_default_subdomain_size_by_dimension_and_graph_size():
     assert default_subdomains(4_608, None, 6) == 72
     assert default_subdomains(91_125, None, 6) == 2848
     assert default_subdomains(91_125, 1000, 6) == 91  # an explicit size wins
+
+
+def test_rows_to_csr_reads_column_major_rows_in_blocks():
+    """The extension's solution (column-major) copied to Φ's CSR rows block by block equals the
+    row-major selection of every row's first k_r entries, for blocks that do not divide the rows."""
+    from gtsam_schwarz.coarse.extension import _rows_to_csr
+
+    rng = np.random.default_rng(3)
+    X = np.asfortranarray(rng.normal(size=(1001, 7)))
+    k_row = rng.integers(0, 8, 1001)
+    expected = X[np.arange(7)[None, :] < k_row[:, None]]
+    for block in (1, 64, 1000, 5000):
+        out = np.full(len(expected), np.nan)
+        _rows_to_csr(X, k_row, out, rows_per_block=block)
+        assert np.array_equal(out, expected)
