@@ -269,7 +269,7 @@ class CostModel:
 
     Calibrated on this project's 2-core machine (CHOLMOD, one BLAS thread) from the factor, solve and
     SpMV times of M3500, city10000, sphere2500, the model problems, lawnmower and 3D surveys
-    (docs/survey.md, "cost model"): a numeric factorization costs :meth:`factor_seconds`, a
+    (docs/survey.md, "Ninth pass"): a numeric factorization costs :meth:`factor_seconds`, a
     triangular solve pair ``SOLVE``·nnz(L), an SpMV ``SPMV``·nnz(H). Schwarz: the subdomain factorization twice (overlapping blocks and interiors),
     harmonic extension with ``COARSE_COLUMNS`` right-hand sides, ``CG_ITERATIONS`` iterations.
     """
