@@ -15,6 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from . import cholmod_symbolic
 from .sparse import SPARSE_BACKEND
 from ..util import vertex_pattern  # noqa: F401 (re-exported: solvers.vertex_pattern)
 
@@ -130,8 +131,10 @@ def _factor_column_counts(S: sp.csc_matrix) -> np.ndarray:
 def _counts(S: sp.csc_matrix) -> np.ndarray:
     """Column counts of the Cholesky factor of S under the solver's own fill-reducing ordering.
 
-    Graphs with dense neighbourhoods (surveys: ≥ ``SUPERNODAL_DEGREE`` entries per column; 2D
-    lawnmowers have 5, 3D surveys 7) fill in heavily, and CHOLMOD's supernodal factorization (BLAS-3)
+    With CHOLMOD, from its symbolic analysis (:mod:`.cholmod_symbolic`: 3D survey 45x45x45 0.76 s
+    against 5.4 s for the numeric surrogate below, the same counts). Where that interface is not
+    usable, a numeric factorization of the surrogate: graphs with dense neighbourhoods (surveys:
+    ≥ ``SUPERNODAL_DEGREE`` entries per column; 2D lawnmowers have 5, 3D surveys 7) fill in heavily, and CHOLMOD's supernodal factorization (BLAS-3)
     is faster there than the simplicial one (3D survey 32x32x32: 0.8 vs 3.7 s; 45x45x45 ~25 s
     simplicial; 2D lawnmower 600x600: 1.9 vs 2.3 s); its padding is
     left out by counting the numerically nonzero entries (S's values are generic, so fill does not
@@ -139,6 +142,9 @@ def _counts(S: sp.csc_matrix) -> np.ndarray:
     entries and 5 % fewer flops than the exact simplicial counts, in 7.2 s instead of 17 s). Sparse
     graphs stay simplicial, which is faster for them (262k-pose model problem: 0.05 vs 0.16 s)."""
     if SPARSE_BACKEND == "cholmod":
+        counts = cholmod_symbolic.column_counts(S)
+        if counts is not None:
+            return counts
         from sksparse.cholmod import cholesky
         if not counted_simplicially(S):
             L = sp.csc_matrix(cholesky(S, mode="supernodal").L())

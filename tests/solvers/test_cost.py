@@ -134,3 +134,25 @@ def test_auto_screens_sphere2500_to_direct_without_a_schwarz_estimate():
     auto = AutoSolver(LinearSolverParams(), opt.linearizer.offsets, np.ones(H.shape[0], bool))
     auto.choose(H)
     assert auto.choice == "direct" and "cannot win" in auto.reason, auto.reason
+
+
+@pytest.mark.parametrize("d", [3, 6])
+def test_symbolic_column_counts_equal_the_numeric_surrogates(d, monkeypatch):
+    """CHOLMOD's symbolic analysis (through its C interface) gives the same column counts as the
+    numeric factorization of the surrogate it replaces, for the sparse and the filled-in path."""
+    if SPARSE_BACKEND != "cholmod":
+        pytest.skip("CHOLMOD only")
+    from gtsam_schwarz.solvers import cholmod_symbolic, cost
+
+    if not cholmod_symbolic.available():
+        pytest.skip("no CHOLMOD 3-5 library to call (the surrogate is used instead)")
+    A, offsets = block_grid(30, d)
+    V = cost.vertex_pattern(A, offsets)
+    for B in (V, sp.csr_matrix(V @ V)):  # a grid (simplicial) and its two-hop pattern (supernodal)
+        S = cost._surrogate(sp.csr_matrix(B))
+        symbolic = cholmod_symbolic.column_counts(S)
+        monkeypatch.setattr(cholmod_symbolic, "column_counts", lambda S: None)
+        numeric = cost._counts(S)
+        monkeypatch.undo()
+        assert symbolic is not None and symbolic.sum() > S.shape[0]
+        assert np.array_equal(symbolic, numeric)
