@@ -77,7 +77,8 @@ def column_groups(K_sub: np.ndarray, weight: np.ndarray, max_groups: int = 3) ->
 def _rows_to_csr(X: np.ndarray, k_row: np.ndarray, out: np.ndarray, rows_per_block: int = 2048) -> None:
     """out = the first k_row[r] entries of every row r of X, row after row (CSR data). X is
     column-major (CHOLMOD's solution): it is read in blocks of rows made row-major in cache, not
-    entry by entry across columns (2D 360 000 poses: 0.58 → 0.1 s per build)."""
+    entry by entry across columns, and with no whole-size temporary (fresh pages: 2D 360 000 poses
+    0.58 → 0.38 s per build)."""
     K = X.shape[1]
     k = np.arange(K)
     at = 0

@@ -270,8 +270,9 @@ class CostModel:
     Calibrated on this project's 2-core machine (CHOLMOD, one BLAS thread) from the factor, solve and
     SpMV times of M3500, city10000, sphere2500, the model problems, lawnmower and 3D surveys
     (docs/survey.md, "Ninth pass"): a numeric factorization costs :meth:`factor_seconds`, a
-    triangular solve pair ``SOLVE``·nnz(L), an SpMV ``SPMV``·nnz(H). Schwarz: the subdomain factorization twice (overlapping blocks and interiors),
-    harmonic extension with ``COARSE_COLUMNS`` right-hand sides, ``CG_ITERATIONS`` iterations.
+    triangular solve pair ``SOLVE``·nnz(L), an SpMV ``SPMV``·nnz(H). Schwarz: the subdomain
+    factorization twice (overlapping blocks and interiors), harmonic extension with
+    ``COARSE_COLUMNS`` right-hand sides, ``CG_ITERATIONS`` iterations.
     """
 
     FLOP = 7e-10  # small supernodes (flops / nnz(L) below ~90: city10000 and sparser)

@@ -134,8 +134,8 @@ def _counts(S: sp.csc_matrix) -> np.ndarray:
     With CHOLMOD, from its symbolic analysis (:mod:`.cholmod_symbolic`: 3D survey 45x45x45 0.76 s
     against 5.4 s for the numeric surrogate below, the same counts). Where that interface is not
     usable, a numeric factorization of the surrogate: graphs with dense neighbourhoods (surveys:
-    ≥ ``SUPERNODAL_DEGREE`` entries per column; 2D lawnmowers have 5, 3D surveys 7) fill in heavily, and CHOLMOD's supernodal factorization (BLAS-3)
-    is faster there than the simplicial one (3D survey 32x32x32: 0.8 vs 3.7 s; 45x45x45 ~25 s
+    ≥ ``SUPERNODAL_DEGREE`` entries per column; 2D lawnmowers have 5, 3D surveys 7) fill in heavily,
+    and CHOLMOD's supernodal factorization (BLAS-3) is faster there than the simplicial one (3D survey 32x32x32: 0.8 vs 3.7 s; 45x45x45 ~25 s
     simplicial; 2D lawnmower 600x600: 1.9 vs 2.3 s); its padding is
     left out by counting the numerically nonzero entries (S's values are generic, so fill does not
     cancel; far from the diagonal it can underflow, though: on the 1M-pose lawnmower 0.8 % fewer
