@@ -1,10 +1,11 @@
 """Predicted cost of a sparse Cholesky factorization from the block pattern alone.
 
 A pose graph's Hessian has dense d×d blocks (d = 3 in 2D, 6 in 3D) on the pattern of its vertex
-graph. Factorizing a d-times smaller surrogate with that vertex pattern (a diagonally dominant
-Laplacian, same fill-reducing ordering) gives the column counts c_j of its factor; the real factor
-has about d²·Σc_j entries and costs about d³·Σc_j² flops. This costs 1/d³ of the real
-factorization, and nothing of it depends on the numbers.
+graph. The column counts c_j of the factor of that vertex pattern (a d-times smaller surrogate, a
+diagonally dominant Laplacian, same fill-reducing ordering) give the real factor's size: about
+d²·Σc_j entries and d³·Σc_j² flops. CHOLMOD's symbolic analysis gives the counts directly
+(:mod:`.cholmod_symbolic`); without it the surrogate is factorized, 1/d³ of the real work. Nothing
+of it depends on the numbers.
 """
 
 from __future__ import annotations
