@@ -157,6 +157,9 @@ class HarmonicExtension:
         self.order = None  # rows of Φ's local storage: the groups' interior dofs, then Γ
         self._local_row = None  # Φ's local row of every global dof (the inverse of ``order``)
         self._cached = None  # (signature of the interface values, plan, A's pattern, read-only value arrays)
+        dims = np.unique(np.diff(offsets))
+        self._d = int(dims[0]) if len(dims) == 1 else 1  # dofs of every vertex (1: not all the same)
+        self._block = 1  # d where Φ's local rows come in whole vertices (set by the plan): A_0 in blocks
 
     def _plan(self, gamma_rows, gamma_cols, col_subdomains) -> dict:
         """Symbolic part of one extension: the groups, the pattern of Φ_Γ (interface rows) and of
@@ -195,6 +198,12 @@ class HarmonicExtension:
         self.order = np.r_[np.concatenate([grp.interior for grp in self.groups]), self.gamma]
         self._local_row = np.empty(self.n, dtype=np.int32 if self.n < 2**31 - 1 else np.int64)
         self._local_row[self.order] = np.arange(self.n)
+        d = self._d
+        whole = d > 1 and len(self.order) % d == 0 and len(self.interior) % d == 0
+        if whole:
+            o = self.order.reshape(-1, d)
+            whole = bool(np.all(o[:, 0] % d == 0) and np.all(o[:, 1:] == o[:, :1] + np.arange(1, d)))
+        self._block = d if whole else 1
         indices = np.r_[np.concatenate(indices), gamma_cols[g_order].astype(idx)]
         if indptr[-1] < 2**31 - 1:
             indptr = indptr.astype(np.int32)
@@ -301,6 +310,8 @@ class HarmonicExtension:
         # (AΦ)_I = A_II Φ_I + A_IΓ Φ_Γ = 0 for the harmonic extension, so Φᵀ A Φ = Φ_Γᵀ (AΦ)_Γ:
         # only the interface rows of A enter (Φ is dense on subdomain interiors; A Φ would not be)
         # in blocks of interface rows: A_Γ·Φ (|Γ| × n_c, K_i columns per row) never exists whole
+        if self._block > 1:
+            return CoarseBasis(local, self.order, plan), self._coarse_matrix_blocks(A, local, plan["nI"])
         Phi_GG = row_block(local, plan["nI"], n)
         step = self.a0_block_rows(len(self.gamma))
         A0 = None
@@ -314,6 +325,32 @@ class HarmonicExtension:
         A0 = (A0 + A0.T).tocsr()  # symmetric to rounding: its mean with the transpose, scaled in place
         A0.data *= 0.5
         return CoarseBasis(local, self.order, plan), A0
+
+    def _coarse_matrix_blocks(self, A: sp.csr_matrix, local: sp.csr_matrix, nI: int) -> sp.csr_matrix:
+        """A_0 = Σ_blocks Φ_Γᵀ (A_Γ·Φ) in d×d blocks (BSR: one index per block of a vertex's dofs, not
+        per entry; 3D survey 32x32x32: 0.67 s against 1.33 s for the CSR products). Φ's local rows
+        come in whole vertices (checked by the plan); its columns are padded to a multiple of d."""
+        d, n, nc = self._block, local.shape[0], local.shape[1]
+        ncp = -(-nc // d) * d
+        L = sp.csr_matrix((local.data, local.indices, local.indptr), shape=(n, ncp)).tobsr((d, d))
+        step = -(-self.a0_block_rows(len(self.gamma)) // d) * d
+        A0 = None
+        for r0 in range(0, len(self.gamma), step):
+            r1 = min(r0 + step, len(self.gamma))
+            X = self._interface_rows(A, r0, r1).tobsr((d, d)) @ L   # (A_Γ·Φ) for these rows
+            b0, b1 = (nI + r0) // d, (nI + r1) // d
+            lo, hi = int(L.indptr[b0]), int(L.indptr[b1])
+            G = sp.bsr_matrix((L.data[lo:hi], L.indices[lo:hi], L.indptr[b0:b1 + 1] - lo), shape=(r1 - r0, ncp))
+            part = (G.T @ X).tocsr()
+            del X, G
+            A0 = part if A0 is None else A0 + part
+            del part
+        del L
+        if ncp != nc:
+            A0 = A0[:nc, :nc]
+        A0 = (A0 + A0.T).tocsr()  # symmetric to rounding: its mean with the transpose, scaled in place
+        A0.data *= 0.5
+        return A0
 
     def _interface_rows(self, A: sp.csr_matrix, r0: int, r1: int) -> sp.csr_matrix:
         """Rows Γ[r0:r1] of A, their columns numbered as Φ's local rows: entries taken by row

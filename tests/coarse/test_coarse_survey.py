@@ -120,6 +120,7 @@ def test_3d_faces_get_spread_nodes_and_solve_like_direct():
     """A 3D interface has faces (many vertices per unit of intrinsic length): nodes spread over the
     whole interface with distance hats across entities, still a partition of unity, and CG converges
     to the direct solution with fewer iterations than one-level Schwarz."""
+    from gtsam_schwarz.coarse import HarmonicExtension, gdsw_coarse_space
     from gtsam_schwarz.problems import survey3d
     prob = survey3d(6, 12, 12, sigma=0.01, seed=0)
     km = KeyMap.from_graph(prob.graph, prob.initial)
@@ -142,6 +143,7 @@ def test_3d_faces_get_spread_nodes_and_solve_like_direct():
 
 
 def _survey3d_cg(size, n_subdomains, name):
+    from gtsam_schwarz.coarse import HarmonicExtension, gdsw_coarse_space
     from gtsam_schwarz.problems import survey3d
     prob = survey3d(*size, sigma=0.01, seed=0)
     km = KeyMap.from_graph(prob.graph, prob.initial)
@@ -204,3 +206,36 @@ def test_rebuild_writes_the_new_basis_into_the_old_storage(survey):
     x = np.random.default_rng(2).standard_normal(H.shape[0])
     y = fresh.apply(x)
     assert np.allclose(M.apply(x), y, rtol=1e-10, atol=1e-12 * np.abs(y).max())
+
+
+@pytest.mark.parametrize("dims", [(12, 12), (4, 6, 6)])
+def test_coarse_matrix_in_vertex_blocks_equals_the_galerkin_product(dims, monkeypatch):
+    """A_0 assembled in d×d vertex blocks (Φ's local rows come in whole poses) equals Φᵀ H Φ formed
+    from the explicit Φ, in 2D (3×3) and 3D (6×6), with a coarse size that d does not divide."""
+    from gtsam_schwarz.coarse import HarmonicExtension, gdsw_coarse_space
+    from gtsam_schwarz.problems import survey3d
+
+    prob = (lawnmower if len(dims) == 2 else survey3d)(*dims, sigma=0.01, seed=1)
+    km = KeyMap.from_graph(prob.graph, prob.initial)
+    H = sp.csr_matrix(export_linear_system(prob.graph.linearize(prob.initial), km).H)
+    H.sort_indices()
+    dec = decompose(GraphStructure.from_matrix(H, km.offsets), 6, "metis")
+    M = make_preconditioner("rgdsw-linear", H, dec, km.translation_mask(), geometry=km.geometry(prob.initial))
+    d = 3 if len(dims) == 2 else 6
+    assert M.extension._block == d
+    space = M.coarse_space
+    Phi = space.Phi
+    expected = (Phi.T @ H @ Phi).toarray()
+    assert np.allclose(space.A0.toarray(), 0.5 * (expected + expected.T), rtol=0, atol=1e-9 * np.abs(expected).max())
+    # the same through the entrywise products (the path for vertices of mixed sizes)
+    plan = HarmonicExtension._plan
+
+    def entrywise(self, *args):
+        out = plan(self, *args)
+        self._block = 1
+        return out
+
+    monkeypatch.setattr(HarmonicExtension, "_plan", entrywise)
+    other = gdsw_coarse_space(H, dec, M.interface, "rgdsw-linear", km.geometry(prob.initial), M.rotation,
+                              km.translation_mask())
+    assert np.allclose(other.A0.toarray(), space.A0.toarray(), rtol=0, atol=1e-9 * np.abs(expected).max())
