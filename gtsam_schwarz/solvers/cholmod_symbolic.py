@@ -35,6 +35,7 @@ class _FactorHead(ctypes.Structure):
 
 
 _STYPE_UPPER, _INT, _PATTERN, _DOUBLE = 1, 0, 0, 0
+_NATURAL = 0  # CHOLMOD_NATURAL: the matrix's own order
 _lib: list = []  # [the loaded library or None], once
 
 
@@ -56,6 +57,9 @@ def _library():
             lib.cholmod_analyze.argtypes = [ctypes.POINTER(_Sparse), ctypes.c_void_p]
             lib.cholmod_analyze.restype = ctypes.c_void_p
             lib.cholmod_free_factor.argtypes = [ctypes.POINTER(ctypes.c_void_p), ctypes.c_void_p]
+            ptr = ctypes.c_void_p
+            lib.cholmod_analyze_ordering.argtypes = [ctypes.POINTER(_Sparse), ctypes.c_int, ptr, ptr, ctypes.c_size_t,
+                                                     ptr, ptr, ptr, ptr, ptr, ctypes.c_void_p]
         _lib.append(lib)
     return _lib[0]
 
@@ -64,23 +68,58 @@ def available() -> bool:
     return _library() is not None
 
 
+def _pattern(S: sp.spmatrix):
+    """S's CSC arrays (int32) and its upper triangle as a CHOLMOD pattern matrix (arrays kept alive by
+    the caller), or None where CHOLMOD's 32-bit interface cannot hold it."""
+    S = sp.csc_matrix(S)
+    n = S.shape[0]
+    if S.nnz >= 2**31 - 1 or n == 0:
+        return None
+    indptr = np.ascontiguousarray(S.indptr, dtype=np.int32)
+    indices = np.ascontiguousarray(S.indices, dtype=np.int32)
+    A = _Sparse(n, n, len(indices), indptr.ctypes.data, indices.ctypes.data, None, None, None,
+                _STYPE_UPPER, _INT, _PATTERN, _DOUBLE, int(S.has_sorted_indices), 1)
+    return A, indptr, indices
+
+
+def natural_column_counts(S: sp.spmatrix) -> np.ndarray | None:
+    """Entries per column of the Cholesky factor of the symmetric pattern S in its own order (no
+    fill-reducing permutation): elimination tree and row/column counts only, O(nnz(S)), by
+    ``cholmod_analyze_ordering``; None where the library is not usable here."""
+    lib = _library()
+    held = _pattern(S) if lib is not None else None
+    if held is None:
+        return None
+    A, n = held[0], S.shape[0]
+    work = np.empty((6, n), dtype=np.int32)   # Perm, Parent, Post, ColCount, First, Level
+    common = ctypes.create_string_buffer(_COMMON_BYTES)
+    if not lib.cholmod_start(common):
+        return None
+    try:
+        ok = lib.cholmod_analyze_ordering(ctypes.byref(A), _NATURAL, work[0].ctypes.data, None, 0, work[1].ctypes.data,
+                                          work[2].ctypes.data, work[3].ctypes.data, work[4].ctypes.data,
+                                          work[5].ctypes.data, common)
+    finally:
+        lib.cholmod_finish(common)
+    counts = work[3].astype(np.int64)
+    if not ok or counts.min(initial=1) < 1 or counts.max(initial=1) > n:
+        return None
+    return counts
+
+
 def column_counts(S: sp.spmatrix) -> np.ndarray | None:
     """Entries per column of the Cholesky factor of the symmetric pattern S (its upper triangle is
     read; diagonal included) under CHOLMOD's default ordering, from ``cholmod_analyze`` alone; None
     where the library is not usable here (the caller falls back to a numeric factorization)."""
     lib = _library()
-    S = sp.csc_matrix(S)
-    n = S.shape[0]
-    if lib is None or S.nnz >= 2**31 - 1 or n == 0:
+    held = _pattern(S) if lib is not None else None
+    if held is None:
         return None
-    indptr = np.ascontiguousarray(S.indptr, dtype=np.int32)
-    indices = np.ascontiguousarray(S.indices, dtype=np.int32)
+    A, n = held[0], S.shape[0]
     common = ctypes.create_string_buffer(_COMMON_BYTES)
     if not lib.cholmod_start(common):
         return None
     try:
-        A = _Sparse(n, n, len(indices), indptr.ctypes.data, indices.ctypes.data, None, None, None,
-                    _STYPE_UPPER, _INT, _PATTERN, _DOUBLE, int(S.has_sorted_indices), 1)
         L = lib.cholmod_analyze(ctypes.byref(A), common)
         if not L:
             return None

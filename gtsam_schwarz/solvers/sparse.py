@@ -43,10 +43,12 @@ class SparseCholesky:
 
     analyze_seconds = factor_seconds = 0.0
 
-    def __init__(self, K: sp.spmatrix, what: str = "local matrix", backend: str | None = None, mode: str = "auto"):
+    def __init__(self, K: sp.spmatrix, what: str = "local matrix", backend: str | None = None, mode: str = "auto",
+                 ordering: str | None = None):
         self.what = what
         self.backend = backend or SPARSE_BACKEND
         self.mode = mode  # CHOLMOD's: auto (supernodal where dense enough), simplicial or supernodal
+        self.ordering = ordering  # CHOLMOD's ordering method ("natural": K's own order); None: its default
         self.analyze(K)
         self.refactor(K)
 
@@ -57,7 +59,8 @@ class SparseCholesky:
         self.n = K.shape[0]
         self._factor = None
         if self.backend == "cholmod" and self.n:
-            self._analysis = _cholmod_analyze(K, mode=getattr(self, "mode", "auto"))
+            self._analysis = _cholmod_analyze(K, mode=getattr(self, "mode", "auto"),
+                                              ordering_method=getattr(self, "ordering", None) or "default")
         self.analyze_seconds = time.perf_counter() - t0
         return self
 

@@ -156,3 +156,32 @@ def test_symbolic_column_counts_equal_the_numeric_surrogates(d, monkeypatch):
         monkeypatch.undo()
         assert symbolic is not None and symbolic.sum() > S.shape[0]
         assert np.array_equal(symbolic, numeric)
+
+
+def test_natural_order_is_taken_only_where_it_fills_in_as_little_as_cholmods():
+    """The natural order's column counts (elimination tree only) equal a numeric factorization in
+    that order; a chain of loops numbered along the trajectory keeps its order (the same factor as
+    AMD's), the same graph with shuffled keys does not."""
+    if SPARSE_BACKEND != "cholmod":
+        pytest.skip("CHOLMOD only")
+    from sksparse.cholmod import analyze
+    from gtsam_schwarz.solvers import cholmod_symbolic, cost, natural_order_suffices
+
+    if not cholmod_symbolic.available():
+        pytest.skip("no CHOLMOD 3-5 library to call")
+    n, d = 3000, 3
+    rng = np.random.default_rng(1)
+    i = np.r_[np.arange(n - 1), np.arange(0, n - 40, 40)]   # odometry and a closure every 40 poses
+    j = np.r_[np.arange(1, n), np.arange(39, n - 1, 40)]
+    for order in (np.arange(n), rng.permutation(n)):
+        a, b = order[i], order[j]
+        B = sp.csr_matrix((np.ones(2 * len(a)), (np.r_[a, b], np.r_[b, a])), shape=(n, n))
+        blocks = sp.kron(B, np.ones((d, d))) * 0.1
+        A = (blocks + sp.eye(n * d) * (4 * d)).tocsr()
+        offsets = np.arange(n + 1) * d
+        S = cost._surrogate(cost.vertex_pattern(A, offsets))
+        counts = cholmod_symbolic.natural_column_counts(S)
+        numeric = np.diff(sp.csc_matrix(analyze(S, mode="simplicial", ordering_method="natural").cholesky(S).LD()).indptr)
+        assert np.array_equal(counts, numeric)
+        natural = natural_order_suffices(A, offsets, cholesky_cost(A, offsets).nnz_L)
+        assert natural == bool(np.array_equal(order, np.arange(n))), counts.sum()
