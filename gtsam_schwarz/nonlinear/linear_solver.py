@@ -19,8 +19,7 @@ from ..dd.structure import GraphStructure
 from ..krylov import pcg
 from ..schwarz import create_preconditioner
 from ..dd.index_sets import IndexSets
-from ..solvers import (SparseCholesky, SparsityPattern, block_diagonal, cholesky_cost, natural_order_suffices,
-                       pattern_cholesky_cost, vertex_pattern)
+from ..solvers import SparseCholesky, SparsityPattern, block_diagonal, cholesky_cost, pattern_cholesky_cost, vertex_pattern
 from ..schwarz.memory import estimate_two_level, fit_memory
 from ..solvers.memory import FACTOR_BYTES, MATRIX_BYTES, InsufficientMemoryError, available_memory, gib
 from .params import LinearSolverParams
@@ -77,9 +76,9 @@ class DirectSolver(LinearSolver):
         self.ordering = None  # "natural" where H's own order fills in as little as CHOLMOD's (set with the prediction)
 
     def check_memory(self, H) -> None:
-        cost = cholesky_cost(H, self.offsets)
+        cost = cholesky_cost(H, self.offsets, natural=True)
         self.predicted_seconds = CostModel().direct(cost)
-        self.ordering = "natural" if natural_order_suffices(H, self.offsets, cost.nnz_L) else None
+        self.ordering = "natural" if cost.natural_suffices else None
         need = FACTOR_BYTES * cost.nnz_L + MATRIX_BYTES * H.nnz
         available = available_memory(self.memory_limit)
         if need > available:
@@ -375,7 +374,7 @@ class AutoSolver(LinearSolver):
     def choose(self, H, geometry: Geometry | None = None) -> LinearSolver:
         """Predict both costs and keep the cheaper solver (its name in ``choice``, why in ``reason``).
         ``geometry``: the poses of the first solve (its coarse columns are then computed once)."""
-        direct = cholesky_cost(H, self.offsets)
+        direct = cholesky_cost(H, self.offsets, natural=True)
         t_direct = self.model.direct(direct)
         params = LinearSolverParams(**{**vars(self.params), "preconditioner": self.schwarz_name})
         cg = PreconditionedCG(params, self.offsets, self.translation_mask)
@@ -383,7 +382,7 @@ class AutoSolver(LinearSolver):
         direct_bytes = FACTOR_BYTES * direct.nnz_L + MATRIX_BYTES * H.nnz
         available = available_memory(self.params.memory_limit)
         if t_direct <= floor and direct_bytes <= available:  # the screen: Schwarz cannot win, no estimate
-            self.choice, self.chosen = "direct", self._direct(t_direct, H, direct)
+            self.choice, self.chosen = "direct", self._direct(t_direct, direct)
             self.reason = (f"nnz(L) {direct.nnz_L:.3g} ({direct.fill:.1f}x nnz(H)), {direct.flops:.3g} flops: "
                            f"direct {t_direct:.3g} s per solve (predicted) < {floor:.3g} s, the time of "
                            f"{self.model.SCHWARZ_OVERHEAD * self.model.SCREEN_ITERATIONS:g} SpMVs (Schwarz cannot win)")
@@ -417,7 +416,7 @@ class AutoSolver(LinearSolver):
             self.choice, self.chosen = self.schwarz_name, cg
             facts += f"; direct's factor needs ~{gib(direct_bytes)}, {gib(available)} available"
         elif not fits or t_direct <= t_schwarz / self.SCHWARZ_MARGIN:
-            self.choice, self.chosen = "direct", self._direct(t_direct, H, direct)
+            self.choice, self.chosen = "direct", self._direct(t_direct, direct)
             if not fits:
                 facts += f"; {self.schwarz_name} would not fit in {gib(available)}"
         else:
@@ -427,10 +426,10 @@ class AutoSolver(LinearSolver):
         self.reason = facts
         return self._chose()
 
-    def _direct(self, predicted: float, H, cost) -> DirectSolver:
+    def _direct(self, predicted: float, cost) -> DirectSolver:
         solver = DirectSolver(lagged=self.params.lagged_preconditioner)
         solver.predicted_seconds = predicted
-        solver.ordering = "natural" if natural_order_suffices(H, self.offsets, cost.nnz_L) else None
+        solver.ordering = "natural" if cost.natural_suffices else None
         return solver
 
     def _chose(self) -> LinearSolver:

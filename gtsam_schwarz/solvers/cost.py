@@ -21,6 +21,9 @@ from .sparse import SPARSE_BACKEND
 from ..util import vertex_pattern  # noqa: F401 (re-exported: solvers.vertex_pattern)
 
 
+NATURAL_SLACK = 1.02  # a matrix's own order is used where its factor has at most this many times AMD's entries
+
+
 @dataclass(frozen=True)
 class CholeskyCost:
     """Predicted size and work of the Cholesky factor of a block matrix."""
@@ -29,6 +32,15 @@ class CholeskyCost:
     nnz_L: float  # entries of its Cholesky factor (one triangle)
     flops: float  # multiply-adds of the numeric factorization
     n_dofs: int = 0
+    nnz_L_natural: float | None = None  # the same in the matrix's own order (when asked for and known)
+
+    @property
+    def natural_suffices(self) -> bool:
+        """Whether the matrix's own order fills in at most ``NATURAL_SLACK`` × the fill-reducing
+        ordering's nnz(L): the factorization can then skip the ordering, the largest part of its
+        analysis (1M-pose model problem, keys along the trajectory: 0.29 against 0.89 s for AMD on
+        H's 28M entries, the same factor)."""
+        return self.nnz_L_natural is not None and self.nnz_L_natural <= NATURAL_SLACK * self.nnz_L
 
     @property
     def fill(self) -> float:
@@ -36,14 +48,17 @@ class CholeskyCost:
         return self.nnz_L / max((self.nnz_A + self.n_dofs) / 2, 1)
 
 
-def cholesky_cost(A: sp.spmatrix, offsets: np.ndarray) -> CholeskyCost:
-    """Predicted nnz(L) and flops of factorizing A (block pattern given by ``offsets``)."""
+def cholesky_cost(A: sp.spmatrix, offsets: np.ndarray, natural: bool = False) -> CholeskyCost:
+    """Predicted nnz(L) and flops of factorizing A (block pattern given by ``offsets``); with
+    ``natural``, also nnz(L) in A's own order (:attr:`CholeskyCost.natural_suffices`)."""
     offsets = np.asarray(offsets, dtype=np.int64)
-    return pattern_cholesky_cost(vertex_pattern(A, offsets), np.diff(offsets), int(sp.csr_matrix(A).nnz))
+    return pattern_cholesky_cost(vertex_pattern(A, offsets), np.diff(offsets), int(sp.csr_matrix(A).nnz), natural)
 
 
-def pattern_cholesky_cost(B: sp.spmatrix, dims: np.ndarray, nnz_A: int | None = None) -> CholeskyCost:
-    """Predicted nnz(L) and flops of a block matrix given by its vertex pattern B and block sizes."""
+def pattern_cholesky_cost(B: sp.spmatrix, dims: np.ndarray, nnz_A: int | None = None,
+                          natural: bool = False) -> CholeskyCost:
+    """Predicted nnz(L) and flops of a block matrix given by its vertex pattern B and block sizes
+    (and, with ``natural``, nnz(L) without a fill-reducing ordering: elimination tree only, O(nnz))."""
     nv = B.shape[0]
     dims = np.asarray(dims, dtype=np.int64)
     if nv == 0:
@@ -56,28 +71,12 @@ def pattern_cholesky_cost(B: sp.spmatrix, dims: np.ndarray, nnz_A: int | None = 
     flops = d ** 3 * float(np.sum(counts.astype(float) ** 2))
     if nnz_A is None:
         nnz_A = int(d * d * sp.csr_matrix(B).nnz)
-    return CholeskyCost(nnz_A=nnz_A, nnz_L=float(nnz_L), flops=flops, n_dofs=int(dims.sum()))
-
-
-NATURAL_SLACK = 1.02  # the graph's own order is used where its factor has at most this many times AMD's entries
-
-
-def natural_order_suffices(A: sp.spmatrix, offsets: np.ndarray, nnz_L: float) -> bool:
-    """Whether A's own order (no fill-reducing permutation) fills in at most ``NATURAL_SLACK`` × the
-    ``nnz_L`` predicted under CHOLMOD's ordering: then the factorization can skip the ordering, the
-    largest part of its analysis (1M-pose model problem, keys along the trajectory: 0.29 against
-    0.89 s for AMD on H's 28M entries, the same factor). From the vertex pattern's elimination tree,
-    O(nnz); False without CHOLMOD's interface."""
-    if SPARSE_BACKEND != "cholmod":
-        return False
-    offsets = np.asarray(offsets, dtype=np.int64)
-    dims = np.diff(offsets)
-    counts = cholmod_symbolic.natural_column_counts(vertex_pattern(A, offsets))
-    if counts is None:
-        return False
-    d = float(np.mean(dims))
-    natural = d * d * counts.sum() - len(dims) * d * (d - 1) / 2
-    return bool(natural <= NATURAL_SLACK * nnz_L)
+    nnz_natural = None
+    if natural and SPARSE_BACKEND == "cholmod":
+        own = cholmod_symbolic.natural_column_counts(S)
+        nnz_natural = None if own is None else float(d * d * own.sum() - nv * d * (d - 1) / 2)
+    return CholeskyCost(nnz_A=nnz_A, nnz_L=float(nnz_L), flops=flops, n_dofs=int(dims.sum()),
+                        nnz_L_natural=nnz_natural)
 
 
 def _surrogate(B: sp.csr_matrix) -> sp.csc_matrix:

@@ -165,7 +165,7 @@ def test_natural_order_is_taken_only_where_it_fills_in_as_little_as_cholmods():
     if SPARSE_BACKEND != "cholmod":
         pytest.skip("CHOLMOD only")
     from sksparse.cholmod import analyze
-    from gtsam_schwarz.solvers import cholmod_symbolic, cost, natural_order_suffices
+    from gtsam_schwarz.solvers import cholmod_symbolic, cost
 
     if not cholmod_symbolic.available():
         pytest.skip("no CHOLMOD 3-5 library to call")
@@ -183,5 +183,5 @@ def test_natural_order_is_taken_only_where_it_fills_in_as_little_as_cholmods():
         counts = cholmod_symbolic.natural_column_counts(S)
         numeric = np.diff(sp.csc_matrix(analyze(S, mode="simplicial", ordering_method="natural").cholesky(S).LD()).indptr)
         assert np.array_equal(counts, numeric)
-        natural = natural_order_suffices(A, offsets, cholesky_cost(A, offsets).nnz_L)
+        natural = cholesky_cost(A, offsets, natural=True).natural_suffices
         assert natural == bool(np.array_equal(order, np.arange(n))), counts.sum()
