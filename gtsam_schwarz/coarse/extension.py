@@ -173,8 +173,14 @@ class HarmonicExtension:
         table = np.zeros((P.shape[0], max(int(counts.max()), 1)), dtype=idx)
         table[pair_sub, np.arange(len(P.indices)) - P.indptr[pair_sub]] = P.indices
         group_of_sub = column_groups(counts, np.bincount(self.sub, minlength=P.shape[0]), self.max_groups)
-        gpos = np.searchsorted(self.gamma, gamma_rows)
-        g_order = np.lexsort((gamma_cols, gpos))
+        # Φ_Γ's entries in (interface row, column) order: rows by a map of Γ, one stable sort of the
+        # combined key (the entries come nearly sorted; 32 768 3D poses: 0.12 s against 0.35 s for a
+        # binary search of Γ and a lexsort)
+        where = np.empty(self.n, dtype=np.int32 if len(self.gamma) < 2**31 - 1 else np.int64)
+        where[self.gamma] = np.arange(len(self.gamma))
+        gpos = where[gamma_rows]
+        del where
+        g_order = np.argsort(gpos.astype(np.int64) * max(nc, 1) + gamma_cols, kind="stable")
         if len(g_order) < 2**31 - 1:
             g_order = g_order.astype(np.int32)
         ptr_G = np.searchsorted(gpos[g_order], np.arange(len(self.gamma) + 1))

@@ -115,7 +115,7 @@ def test_auto_does_not_take_direct_when_its_factor_does_not_fit(survey, monkeypa
         ls.AutoSolver(LinearSolverParams(subdomains=16, memory_limit=0.5 * direct), km.offsets, mask).choose(H)
     assert "\n" not in str(caught.value)
     # a factor 100x fuller (as on large 3D graphs): it no longer fits where Schwarz does
-    monkeypatch.setattr(ls, "cholesky_cost", lambda A, offsets: CholeskyCost(real.nnz_A, 100 * real.nnz_L,
+    monkeypatch.setattr(ls, "cholesky_cost", lambda A, offsets, natural=False: CholeskyCost(real.nnz_A, 100 * real.nnz_L,
                                                                              real.flops, real.n_dofs))
     auto = ls.AutoSolver(LinearSolverParams(subdomains=16, memory_limit=20 * direct), km.offsets, mask)
     auto.choose(H)
