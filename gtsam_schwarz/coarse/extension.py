@@ -158,7 +158,7 @@ class HarmonicExtension:
         self._local_row = None  # Φ's local row of every global dof (the inverse of ``order``)
         self._cached = None  # (signature of the interface values, plan, A's pattern, read-only value arrays)
         dims = np.unique(np.diff(offsets))
-        self._d = int(dims[0]) if len(dims) == 1 else 1  # dofs of every vertex (1: not all the same)
+        self.vertex_dofs = int(dims[0]) if len(dims) == 1 else 1  # dofs of every vertex (1: not all the same)
         self._block = 1  # d where Φ's local rows come in whole vertices (set by the plan): A_0 in blocks
 
     def _plan(self, gamma_rows, gamma_cols, col_subdomains) -> dict:
@@ -204,7 +204,7 @@ class HarmonicExtension:
         self.order = np.r_[np.concatenate([grp.interior for grp in self.groups]), self.gamma]
         self._local_row = np.empty(self.n, dtype=np.int32 if self.n < 2**31 - 1 else np.int64)
         self._local_row[self.order] = np.arange(self.n)
-        d = self._d
+        d = self.vertex_dofs
         whole = d > 1 and len(self.order) % d == 0 and len(self.interior) % d == 0
         if whole:
             o = self.order.reshape(-1, d)

@@ -95,7 +95,7 @@ def estimate_two_level(M, A, geometry=None) -> MemoryEstimate:
         # A₀ and, while it is assembled, A_Γ·Φ for one block of interface rows (K columns each at most)
         # and, where it is assembled in vertex blocks, Φ's copy in blocks (~9.5 bytes per entry of Φ)
         "coarse matrix": (16.0 * nc * nc if dense_coarse else 48.0 * nnz_A0) + 12.0 * ext.a0_block_rows(len(ext.gamma)) * K
-                         + (9.5 * nnz_phi if ext._d > 1 else 0.0),
+                         + (9.5 * nnz_phi if ext.vertex_dofs > 1 else 0.0),
     }
     # the extension solves group by group (coarse.extension.column_groups): its largest right-hand side
     nI_sub = np.bincount(ext.sub, minlength=len(K_sub))

@@ -58,8 +58,9 @@ def _library():
             lib.cholmod_analyze.restype = ctypes.c_void_p
             lib.cholmod_free_factor.argtypes = [ctypes.POINTER(ctypes.c_void_p), ctypes.c_void_p]
             ptr = ctypes.c_void_p
-            lib.cholmod_analyze_ordering.argtypes = [ctypes.POINTER(_Sparse), ctypes.c_int, ptr, ptr, ctypes.c_size_t,
-                                                     ptr, ptr, ptr, ptr, ptr, ctypes.c_void_p]
+            if hasattr(lib, "cholmod_analyze_ordering"):  # public since CHOLMOD 1; natural_column_counts needs it
+                lib.cholmod_analyze_ordering.argtypes = [ctypes.POINTER(_Sparse), ctypes.c_int, ptr, ptr,
+                                                         ctypes.c_size_t, ptr, ptr, ptr, ptr, ptr, ctypes.c_void_p]
         _lib.append(lib)
     return _lib[0]
 
@@ -87,11 +88,12 @@ def natural_column_counts(S: sp.spmatrix) -> np.ndarray | None:
     fill-reducing permutation): elimination tree and row/column counts only, O(nnz(S)), by
     ``cholmod_analyze_ordering``; None where the library is not usable here."""
     lib = _library()
-    held = _pattern(S) if lib is not None else None
+    held = _pattern(S) if lib is not None and hasattr(lib, "cholmod_analyze_ordering") else None
     if held is None:
         return None
     A, n = held[0], S.shape[0]
     work = np.empty((6, n), dtype=np.int32)   # Perm, Parent, Post, ColCount, First, Level
+    work[0] = np.arange(n, dtype=np.int32)    # the identity (the natural ordering does not read it)
     common = ctypes.create_string_buffer(_COMMON_BYTES)
     if not lib.cholmod_start(common):
         return None
