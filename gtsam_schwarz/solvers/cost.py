@@ -33,14 +33,16 @@ class CholeskyCost:
     flops: float  # multiply-adds of the numeric factorization
     n_dofs: int = 0
     nnz_L_natural: float | None = None  # the same in the matrix's own order (when asked for and known)
+    flops_natural: float | None = None
 
     @property
     def natural_suffices(self) -> bool:
-        """Whether the matrix's own order fills in at most ``NATURAL_SLACK`` × the fill-reducing
-        ordering's nnz(L): the factorization can then skip the ordering, the largest part of its
-        analysis (1M-pose model problem, keys along the trajectory: 0.29 against 0.89 s for AMD on
-        H's 28M entries, the same factor)."""
-        return self.nnz_L_natural is not None and self.nnz_L_natural <= NATURAL_SLACK * self.nnz_L
+        """Whether the matrix's own order costs at most ``NATURAL_SLACK`` × the fill-reducing
+        ordering's nnz(L) and flops: the factorization can then skip the ordering, the largest part
+        of its analysis (1M-pose model problem, keys along the trajectory: 0.29 against 0.89 s for
+        AMD on H's 28M entries, the same factor)."""
+        return (self.nnz_L_natural is not None and self.nnz_L_natural <= NATURAL_SLACK * self.nnz_L
+                and self.flops_natural <= NATURAL_SLACK * self.flops)
 
     @property
     def fill(self) -> float:
@@ -71,12 +73,13 @@ def pattern_cholesky_cost(B: sp.spmatrix, dims: np.ndarray, nnz_A: int | None = 
     flops = d ** 3 * float(np.sum(counts.astype(float) ** 2))
     if nnz_A is None:
         nnz_A = int(d * d * sp.csr_matrix(B).nnz)
-    nnz_natural = None
-    if natural and SPARSE_BACKEND == "cholmod":
-        own = cholmod_symbolic.natural_column_counts(S)
-        nnz_natural = None if own is None else float(d * d * own.sum() - nv * d * (d - 1) / 2)
+    nnz_natural = flops_natural = None
+    own = cholmod_symbolic.natural_column_counts(S) if natural and SPARSE_BACKEND == "cholmod" else None
+    if own is not None:
+        nnz_natural = float(d * d * own.sum() - nv * d * (d - 1) / 2)
+        flops_natural = d ** 3 * float(np.sum(own.astype(float) ** 2))
     return CholeskyCost(nnz_A=nnz_A, nnz_L=float(nnz_L), flops=flops, n_dofs=int(dims.sum()),
-                        nnz_L_natural=nnz_natural)
+                        nnz_L_natural=nnz_natural, flops_natural=flops_natural)
 
 
 def _surrogate(B: sp.csr_matrix) -> sp.csc_matrix:
