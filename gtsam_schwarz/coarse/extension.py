@@ -131,6 +131,13 @@ def _digest(*arrays: np.ndarray) -> bytes:
     return h.digest()
 
 
+def _symmetric_part(A0: sp.spmatrix) -> sp.csr_matrix:
+    """(A₀ + A₀ᵀ)/2: A₀ symmetric to rounding (the mean with its transpose, scaled in place)."""
+    A0 = (A0 + A0.T).tocsr()
+    A0.data *= 0.5
+    return A0
+
+
 class HarmonicExtension:
     """Φ = [Φ_Γ; −A_II⁻¹ A_IΓ Φ_Γ] and A_0 = Φᵀ A Φ for one decomposition and interface.
 
@@ -328,8 +335,7 @@ class HarmonicExtension:
             A0 = part if A0 is None else A0 + part
             del part
         del Phi_GG
-        A0 = (A0 + A0.T).tocsr()  # symmetric to rounding: its mean with the transpose, scaled in place
-        A0.data *= 0.5
+        A0 = _symmetric_part(A0)
         return CoarseBasis(local, self.order, plan), A0
 
     def _coarse_matrix_blocks(self, A: sp.csr_matrix, local: sp.csr_matrix, nI: int) -> sp.csr_matrix:
@@ -354,8 +360,7 @@ class HarmonicExtension:
         del L
         if ncp != nc:
             A0 = A0[:nc, :nc]
-        A0 = (A0 + A0.T).tocsr()  # symmetric to rounding: its mean with the transpose, scaled in place
-        A0.data *= 0.5
+        A0 = _symmetric_part(A0)
         return A0
 
     def _interface_rows(self, A: sp.csr_matrix, r0: int, r1: int) -> sp.csr_matrix:
