@@ -58,8 +58,9 @@ class LinearSolverParams:
     forcing_max: float = 1e-3  # measured: 0.1 and 0.01 let LM drift to worse minima on M3500a
     backend: str = "serial"  # serial (this process) | petsc (PETSc over MPI, gtsam_schwarz.backends.petsc)
     reuse_symbolic: bool = True  # keep interface, patterns and symbolic factorizations across solves
-    lagged_preconditioner: bool = True  # keep M (all its numbers) while the poses have hardly moved
-    lag_distance: float = 0.1  # lagged: rebuild M once the steps since its build sum to this (max-norm)
+    lagged_preconditioner: bool = True  # keep M (all its numbers) while H has hardly changed
+    lag_change: float = 1e-4  # lagged: rebuild M once H's entries changed by this since its build (scaled RMS, solvers.EntryChange)
+    lag_distance: float = 1.0  # lagged: rebuild M once the steps since its build sum to this (max-norm)
     lag_growth: float = 1.5  # lagged: CG cap = this × the CG count right after the build; beyond it, rebuild
     memory_limit: float | str | None = None  # bytes the linear solver may use ("2G"); None: $GTSAM_SCHWARZ_MEMORY_LIMIT or what is available
 
@@ -79,6 +80,8 @@ class LinearSolverParams:
             raise ValueError(f"cg_tol must be > 0, got {self.cg_tol}")
         if not self.lag_distance >= 0:
             raise ValueError(f"lag_distance must be >= 0, got {self.lag_distance}")
+        if not self.lag_change >= 0:
+            raise ValueError(f"lag_change must be >= 0, got {self.lag_change}")
         if self.memory_limit is not None and not parse_bytes(self.memory_limit) > 0:
             raise ValueError(f"memory_limit must be > 0, got {self.memory_limit!r}")
         if not self.lag_growth >= 1:

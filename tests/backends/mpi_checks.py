@@ -83,9 +83,15 @@ def main() -> int:
     far = comm.bcast(far, root=0)
     damped = H0.copy()
     damped.setdiag(damped.diagonal() + 1e-3)  # LM's damping: new numbers in the same pattern
+    rescaled = H1.copy()  # H1 with its rows and columns rescaled, in its pattern: far beyond lag_change
+    w = np.sqrt(np.random.default_rng(1).uniform(1.0, 30.0, H1.shape[0]))
+    rescaled.data *= w[np.repeat(np.arange(H1.shape[0]), np.diff(H1.indptr))] * w[H1.indices]
+    # lag_change 1: the far linearization is tried lagged (and given up at the cap); the rescaled H1 is not
     sequence = [(H0, state, 0.0), (damped, state, 0.01),
-                (sp.csr_matrix(lin.linearize(far).H), far, 0.01), (H1, state1, 0.5), (H1, state1, 0.0)]
-    params = LinearSolverParams(preconditioner="gdsw", partition="segments", subdomains=loops, lag_growth=1.0)
+                (sp.csr_matrix(lin.linearize(far).H), far, 0.01), (H1, state1, 0.5), (H1, state1, 0.0),
+                (rescaled, state1, 0.0)]
+    params = LinearSolverParams(preconditioner="gdsw", partition="segments", subdomains=loops, lag_growth=1.0,
+                                lag_distance=0.1, lag_change=1.0)
     serial, solver = PreconditionedCG(params, lin.offsets, lin.translation_mask()), \
         PetscSchwarzSolver(params, lin.offsets, lin.translation_mask())
     lag = []

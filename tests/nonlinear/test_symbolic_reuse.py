@@ -189,11 +189,8 @@ def test_symbolic_reuse_gives_the_same_iterates_as_rebuilding_from_scratch():
     assert abs(a.error() - b.error()) <= 1e-9 * b.error()
 
 
-def test_a_lagged_solve_falling_behind_the_fresh_rate_is_given_up_early():
-    """M built for H; the next matrix differs a lot: the lagged solve falls behind its bounds (from
-    max(5, F/4) on), M is rebuilt, and CG finishes from there, well before the lag cap."""
-    import scipy.sparse as sp
-
+def _far_matrix_sequence(**params):
+    """A PreconditionedCG that solved H once, and a matrix far from H (rescaled rows and columns)."""
     from gtsam_schwarz.linearization.native import NativeLinearizer
     from gtsam_schwarz.nonlinear.linear_solver import PreconditionedCG
     from gtsam_schwarz.nonlinear.params import LinearSolverParams
@@ -204,24 +201,66 @@ def test_a_lagged_solve_falling_behind_the_fresh_rate_is_given_up_early():
     system = lin.linearize(state)
     H, g = system.H.tocsr(), system.rhs
     solver = PreconditionedCG(LinearSolverParams(preconditioner="gdsw", subdomains=8, partition="segments",
-                                                 lag_distance=10.0, lag_growth=3.0),
+                                                 lag_distance=10.0, lag_growth=3.0, **params),
                               lin.offsets, lin.translation_mask())
-    first = solver.solve(H, g, 1e-8, lambda: lin.geometry(state))
-    F = first.iterations
-    cap = solver._lag_cap()
-    assert cap == int(3.0 * F) + 2
-    bounds = solver._lag_bounds(cap)
-    k = max(5, F // 4)
-    assert len(bounds) == F and np.all(np.isinf(bounds[:k]))
-    assert np.all(np.asarray(first.residuals[k:F]) < bounds[k:]) and np.all(bounds[k:] < 1.0)
+    geometry = lambda: lin.geometry(state)  # noqa: E731
+    first = solver.solve(H, g, 1e-8, geometry)
     d = np.random.default_rng(0).uniform(1.0, 30.0, H.shape[0])
-    H2 = sp.csr_matrix(sp.diags(np.sqrt(d)) @ H @ sp.diags(np.sqrt(d)))  # far from H: M is stale
-    second = solver.solve(H2, g, 1e-8, lambda: lin.geometry(state))
+    H2 = H.copy()  # D^½ H D^½ in H's pattern: far from H, M is stale
+    H2.data *= np.sqrt(d[np.repeat(np.arange(H.shape[0]), np.diff(H.indptr))] * d[H.indices])
+    fresh = PreconditionedCG(solver.params, lin.offsets, lin.translation_mask()).solve(H2, g, 1e-8, geometry)
+    return solver, first, H, H2, g, geometry, fresh
+
+
+def test_a_matrix_far_from_the_build_gets_a_new_preconditioner_without_a_lagged_try():
+    """H's entries changed far beyond lag_change: M is rebuilt before CG (the fresh solve's count)."""
+    solver, first, H, H2, g, geometry, fresh = _far_matrix_sequence()
+    assert solver._change(H) == 0.0 and 1.0 < solver._change(H2) < float("inf")
+    assert solver._lag_cap() == int(3.0 * first.iterations) + 2  # the distance alone would lag
+    second = solver.solve(H2, g, 1e-8, geometry)
+    assert not second.lagged and second.rebuilt and second.converged
+    assert second.iterations == fresh.iterations
+    assert solver._change(H2) == 0.0  # the new build's reference
+
+
+def test_a_lagged_solve_beyond_its_cap_is_rebuilt_and_continued():
+    """With the change test off (lag_change inf) the stale M is tried: CG stops at the cap
+    (lag_growth × the fresh count + 2), M is rebuilt and CG continues from its iterate."""
+    solver, first, H, H2, g, geometry, fresh = _far_matrix_sequence(lag_change=float("inf"))
+    cap = solver._lag_cap(H2)
+    assert cap == int(3.0 * first.iterations) + 2
+    second = solver.solve(H2, g, 1e-8, geometry)
     assert second.lagged and second.rebuilt and second.converged
     assert np.linalg.norm(H2 @ second.x - g) <= 1e-7 * np.linalg.norm(g)
-    fresh = PreconditionedCG(solver.params, lin.offsets, lin.translation_mask()).solve(
-        H2, g, 1e-8, lambda: lin.geometry(state))
-    assert second.iterations < k + fresh.iterations + 10 < cap + fresh.iterations  # gave up at k, not at the cap
+    assert cap < second.iterations < cap + fresh.iterations + 10
+
+
+def test_entry_change_is_the_scaled_rms_change_of_the_entries():
+    import scipy.sparse as sp
+
+    from gtsam_schwarz.solvers import EntryChange
+
+    rng = np.random.default_rng(3)
+    B = sp.random(300, 300, density=0.02, random_state=4, format="csr")
+    R = sp.csr_matrix(B @ B.T + sp.diags(rng.uniform(1.0, 5.0, 300)))
+    R.sort_indices()
+    change = EntryChange(R)
+    assert change(R) == 0.0
+    eps = 1e-3
+    A = sp.csr_matrix(R + eps * sp.diags(R.diagonal()))  # diagonal entries × (1 + eps): δ = eps·√(n/nnz)
+    A.sort_indices()
+    assert np.isclose(change(A), eps * np.sqrt(R.shape[0] / R.nnz), rtol=1e-9)
+    A2 = R.copy()
+    A2.data *= 1.0 + eps  # every entry: δ² = eps² mean(R_ij² / (R_ii R_jj))
+    r, c = R.nonzero()
+    expected = eps * np.sqrt(np.mean(np.asarray(R[r, c]).ravel() ** 2 / (R.diagonal()[r] * R.diagonal()[c])))
+    assert np.isclose(change(A2), expected, rtol=1e-9)
+    assert change(sp.csr_matrix(R + sp.eye(300, k=150))) == float("inf")  # another pattern
+    EntryChange.SAMPLES, saved = 500, EntryChange.SAMPLES  # a sample of the entries: the same estimate, roughly
+    try:
+        assert abs(EntryChange(R)(A2) / expected - 1.0) < 0.3
+    finally:
+        EntryChange.SAMPLES = saved
 
 
 def _dense_extension(H, ext, rows, cols, vals, nc):

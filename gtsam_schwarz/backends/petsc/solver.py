@@ -40,7 +40,7 @@ from ...schwarz import REGISTRY
 from ...schwarz.one_level import AdditiveSchwarz, BlockJacobi
 from ...schwarz.pointwise import Identity, Jacobi
 from ...schwarz.two_level import TwoLevelSchwarz
-from ...solvers import Gather
+from ...solvers import EntryChange, Gather
 from .coarse import LocalCoarseBasis
 from .layout import RankLayout, rank_layout
 
@@ -383,27 +383,47 @@ class PetscSchwarzSolver(PreconditionedCG):
         self.timings["pc_setup"] += time.perf_counter() - t1
         self.operator = _Operator(self._coarse_size)
 
-    def _ksp_solve(self, tol: float, maxiter: int, warm: bool, bounds=None, bnorm: float = 0.0):
-        """KSP solve; ``bounds``: give up when ‖r_k‖/‖b‖ > bounds[k] (krylov.pcg's rule)."""
+    def _rebuild(self, H_rows, geometry, H) -> None:
+        """:meth:`_build`, and the reference for H's change since this build: from the whole H where
+        every rank has it, else from this rank's rows of the assembled matrix."""
+        self._build(H_rows, geometry)
+        self._change = None
+        if self.params.lagged_preconditioner:
+            self._change = EntryChange(H) if H is not None else EntryChange(*self._own_rows())
+
+    def _own_rows(self) -> tuple[sp.csr_matrix, int, np.ndarray, int]:
+        """This rank's rows of the assembled matrix (layout numbering), a sampling seed, the whole
+        diagonal and the first row: the arguments of a distributed :class:`EntryChange`."""
+        lo, hi = self.layout.rows(self.rank)
+        indptr, indices, data = self.A.getValuesCSR()
+        rows = sp.csr_matrix((data, indices, indptr), shape=(hi - lo, self.layout.n))
+        diagonal = self.A.getDiagonal()
+        if self._scatter is None:  # (solve_distributed: no gathered solution so far)
+            self._scatter, self._xall = self.PETSc.Scatter.toAll(diagonal)
+        self._scatter.scatter(diagonal, self._xall, addv=self.PETSc.InsertMode.INSERT,
+                              mode=self.PETSc.ScatterMode.FORWARD)
+        diagonal.destroy()
+        return rows, self.rank, self._xall.getArray(readonly=True).copy(), lo
+
+    def _matrix_change(self, H) -> float | None:
+        """Serial :class:`EntryChange` where H is the whole scipy matrix; for the assembled PETSc
+        matrix (distributed), the sums over every rank's own rows."""
+        if self._change is None or sp.issparse(H):
+            return super()._matrix_change(H)
+        total, count = self._change.sums(self._own_rows()[0])
+        if self.size > 1:
+            comm = self.comm.tompi4py()
+            total, count = comm.allreduce(total, op=_mpi().SUM), comm.allreduce(count, op=_mpi().SUM)
+        return float(np.sqrt(total / count)) if count else 0.0
+
+    def _ksp_solve(self, tol: float, maxiter: int, warm: bool):
+        """KSP solve to relative residual ``tol`` within ``maxiter`` iterations."""
         ksp = self.ksp
-        PETSc = self.PETSc
         ksp.setTolerances(rtol=tol, atol=0.0, divtol=DIVERGENCE, max_it=maxiter)
         ksp.setInitialGuessNonzero(warm)
         ksp.setConvergenceHistory(length=min(maxiter + 1, HISTORY_MAX), reset=True)
-        if bounds is not None and bnorm > 0:
-            def converged(ksp, its, rnorm):  # the default test (zero initial guess: r₀ = b) plus the bounds
-                if rnorm <= tol * bnorm:
-                    return PETSc.KSP.ConvergedReason.CONVERGED_RTOL
-                if its >= maxiter or (its < len(bounds) and rnorm > bounds[its] * bnorm):
-                    return PETSc.KSP.ConvergedReason.DIVERGED_MAX_IT
-                return PETSc.KSP.ConvergedReason.ITERATING
-            ksp.setConvergenceTest(converged)
         t0 = time.perf_counter()
-        try:
-            ksp.solve(self._b, self._x)
-        finally:
-            if bounds is not None and bnorm > 0:
-                ksp.setConvergenceTest(None)  # back to KSPConvergedDefault
+        ksp.solve(self._b, self._x)
         self.timings["ksp_solve"] += time.perf_counter() - t0
         its = int(ksp.getIterationNumber()) if self.kind[0] != "direct" else 0
         reason = int(ksp.getConvergedReason())
@@ -428,7 +448,7 @@ class PetscSchwarzSolver(PreconditionedCG):
         self.timings["assemble"] += time.perf_counter() - t0
         rhs = np.asarray(rhs, dtype=float)
         self._b.setArray(rhs[lay.order[lo:hi]])
-        result = self._solve_assembled(created, tol, geometry, lambda: H, float(np.linalg.norm(rhs)), t0)
+        result = self._solve_assembled(created, tol, geometry, lambda: H, float(np.linalg.norm(rhs)), t0, H)
         t3 = time.perf_counter()
         self._scatter.scatter(self._x, self._xall, addv=self.PETSc.InsertMode.INSERT,
                               mode=self.PETSc.ScatterMode.FORWARD)
@@ -475,28 +495,30 @@ class PetscSchwarzSolver(PreconditionedCG):
         perm, cols, ptr = self._orig_rows
         return sp.csr_matrix((data[perm], cols, ptr), shape=(lay.n, lay.n))
 
-    def _solve_assembled(self, created: bool, tol: float, geometry, H_rows, bnorm: float, t0: float) -> SolveResult:
+    def _solve_assembled(self, created: bool, tol: float, geometry, H_rows, bnorm: float, t0: float,
+                         H: sp.csr_matrix | None = None) -> SolveResult:
         """KSP solve of ``self.A`` x = ``self._b`` with the lagging policy; ``H_rows()``: this rank's rows
-        of H, original numbering (for the coarse basis)."""
+        of H, original numbering (for the coarse basis). ``H``: the whole matrix where every rank has
+        it (:meth:`solve`): then H's change since the build is checked as in the serial solver;
+        distributed (:meth:`solve_distributed`), only the distance moved is."""
         p = self.params
-        cap = None if created else self._lag_cap()
+        cap = None if created else self._lag_cap(H if H is not None else self.A)
         lagged = cap is not None
         self._rebuilt = not lagged
         if lagged:
             self.ksp.getPC().setReusePreconditioner(True)
         else:
-            self._build(H_rows, geometry)
+            self._rebuild(H_rows, geometry, H)
         setup = time.perf_counter() - t0
         n = self.layout.n
         maxiter = cap if lagged else (p.cg_max_iterations or 10 * n)
-        bounds = self._lag_bounds(cap) if lagged else None
-        its, reason, history, lmin, lmax = self._ksp_solve(tol, maxiter, warm=False, bounds=bounds, bnorm=bnorm)
+        its, reason, history, lmin, lmax = self._ksp_solve(tol, maxiter, warm=False)
         residuals = list(history / bnorm) if bnorm > 0 else [0.0]
         converged = reason > 0
         if lagged and not converged:  # stale: rebuild for H, continue from x
             t2 = time.perf_counter()
             self._rebuilt = True
-            self._build(H_rows, geometry)
+            self._rebuild(H_rows, geometry, H)
             setup += time.perf_counter() - t2
             more, reason, history, lmin, lmax = self._ksp_solve(tol, p.cg_max_iterations or 10 * n, warm=True)
             its += more
@@ -505,7 +527,6 @@ class PetscSchwarzSolver(PreconditionedCG):
             self._moved = 0.0  # the warm-started count is no reference: keep the previous one
         elif self._rebuilt:
             self._cg_after_build, self._moved = its, 0.0
-            self._fresh_residuals = residuals
         return SolveResult(x=self._x, iterations=its, converged=converged, lambda_min=lmin, lambda_max=lmax,
                            residuals=residuals, tolerance=tol if self.kind[0] != "direct" else 0.0,
                            setup_seconds=setup, coarse_size=self._coarse_size, rebuilt=self._rebuilt,
