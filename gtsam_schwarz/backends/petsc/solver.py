@@ -389,28 +389,31 @@ class PetscSchwarzSolver(PreconditionedCG):
         self._build(H_rows, geometry)
         self._change = None
         if self.params.lagged_preconditioner:
-            self._change = EntryChange(H) if H is not None else EntryChange(*self._own_rows())
+            self._change = EntryChange(H) if H is not None else self._own_change()
 
-    def _own_rows(self) -> tuple[sp.csr_matrix, int, np.ndarray, int]:
-        """This rank's rows of the assembled matrix (layout numbering), a sampling seed, the whole
-        diagonal and the first row: the arguments of a distributed :class:`EntryChange`."""
+    def _own_rows(self) -> sp.csr_matrix:
+        """This rank's rows of the assembled matrix as a (rows × n) CSR, layout numbering."""
         lo, hi = self.layout.rows(self.rank)
         indptr, indices, data = self.A.getValuesCSR()
-        rows = sp.csr_matrix((data, indices, indptr), shape=(hi - lo, self.layout.n))
+        return sp.csr_matrix((data, indices, indptr), shape=(hi - lo, self.layout.n))
+
+    def _own_change(self) -> EntryChange:
+        """A distributed :class:`EntryChange` of this rank's rows, scaled by the whole diagonal."""
         diagonal = self.A.getDiagonal()
         if self._scatter is None:  # (solve_distributed: no gathered solution so far)
             self._scatter, self._xall = self.PETSc.Scatter.toAll(diagonal)
         self._scatter.scatter(diagonal, self._xall, addv=self.PETSc.InsertMode.INSERT,
                               mode=self.PETSc.ScatterMode.FORWARD)
         diagonal.destroy()
-        return rows, self.rank, self._xall.getArray(readonly=True).copy(), lo
+        d = self._xall.getArray(readonly=True).copy()
+        return EntryChange(self._own_rows(), seed=self.rank, diagonal=d, first_row=self.layout.rows(self.rank)[0])
 
     def _matrix_change(self, H) -> float | None:
         """Serial :class:`EntryChange` where H is the whole scipy matrix; for the assembled PETSc
         matrix (distributed), the sums over every rank's own rows."""
         if self._change is None or sp.issparse(H):
             return super()._matrix_change(H)
-        total, count = self._change.sums(self._own_rows()[0])
+        total, count = self._change.sums(self._own_rows())
         if self.size > 1:
             comm = self.comm.tompi4py()
             total, count = comm.allreduce(total, op=_mpi().SUM), comm.allreduce(count, op=_mpi().SUM)
