@@ -343,3 +343,26 @@ def test_lagged_direct_solver_budgets_by_the_prediction_not_a_first_factorizatio
     solver._iteration_seconds = 1e9  # no lagged attempt: the next solve refactorizes and is measured
     solver.solve(H1, b, 1e-10, lambda: None)
     assert solver._refactor_seconds > 1e-9
+
+
+def test_lm_on_a_lawnmower_keeps_the_preconditioner_for_the_solve_that_confirms_convergence():
+    """The first step moves H (its entries change ~3e-4, rebuild); the second hardly (< lag_change):
+    the last solve runs with the second build's M, and LM ends where rebuilding every solve ends."""
+    from gtsam_schwarz.linearization.native import NativeLinearizer
+    from gtsam_schwarz.problems.survey import lawnmower
+
+    prob = lawnmower(40, 40)
+    runs = {}
+    for change in (1e-4, 0.0):  # the default, and a rebuild for every changed H
+        lin = NativeLinearizer.from_arrays(**prob.arrays)
+        opt = SchwarzOptimizer(None, None, SchwarzParams(preconditioner="rgdsw-linear", lag_change=change),
+                               linearizer=lin)
+        opt.optimize()
+        assert opt.converged
+        runs[change] = opt
+    lagged, rebuilt = runs[1e-4].history, runs[0.0].history
+    assert [h["preconditioner_rebuilt"] for h in rebuilt] == [True] * len(rebuilt)
+    assert lagged[0]["preconditioner_rebuilt"] and lagged[1]["preconditioner_rebuilt"]  # after the first step
+    assert lagged[-1]["preconditioner_lagged"] and not lagged[-1]["preconditioner_rebuilt"]
+    assert lagged[-1]["cg_iterations"] <= int(1.5 * lagged[-2]["cg_iterations"]) + 2  # within its cap
+    assert abs(runs[1e-4].error() - runs[0.0].error()) <= 1e-9 * runs[0.0].error()
