@@ -502,8 +502,8 @@ class PetscSchwarzSolver(PreconditionedCG):
                          H: sp.csr_matrix | None = None) -> SolveResult:
         """KSP solve of ``self.A`` x = ``self._b`` with the lagging policy; ``H_rows()``: this rank's rows
         of H, original numbering (for the coarse basis). ``H``: the whole matrix where every rank has
-        it (:meth:`solve`): then H's change since the build is checked as in the serial solver;
-        distributed (:meth:`solve_distributed`), only the distance moved is."""
+        it (:meth:`solve`), whose change since the build is checked as in the serial solver; None
+        (:meth:`solve_distributed`): the change of the assembled matrix, summed over the ranks."""
         p = self.params
         cap = None if created else self._lag_cap(H if H is not None else self.A)
         lagged = cap is not None
