@@ -165,6 +165,8 @@ class PreconditionedCG(LinearSolver):
         self._moved = float("inf")  # max-norm of the accepted steps since the preconditioner's build
         self._rebuilt = True  # the last solve recomputed the preconditioner's numbers
         self._change = None  # EntryChange from the matrix of the last build (None: unknown)
+        self._subdomain_change = None  # EntryChange from the matrix the subdomains were last factorized for
+        self._subdomains_kept = False  # the last build kept earlier subdomain factorizations
 
     def n_subdomains(self) -> int:
         p = self.params
@@ -213,10 +215,12 @@ class PreconditionedCG(LinearSolver):
         """:class:`EntryChange` of H since the last build (None: no build to compare with)."""
         return None if self._change is None else self._change(H)
 
-    def preconditioner(self, H, geometry: Geometry, lag: bool = False):
+    def preconditioner(self, H, geometry: Geometry, lag: bool = False, subdomains: bool = False):
         """The operator for H: created and set up on the first call, afterwards updated in place
         (same subdomains, interface, submatrix patterns and symbolic factorizations; new numbers).
-        ``lag=True`` returns the previous one unchanged."""
+        ``lag=True`` returns the previous one unchanged. A two-level operator keeps its subdomain
+        factorizations while H has changed by at most ``subdomain_lag_change`` since them, unless
+        ``subdomains`` (refactorize them)."""
         p = self.params
         M = self.operator
         self._rebuilt = not (lag and M is not None)
@@ -226,11 +230,18 @@ class PreconditionedCG(LinearSolver):
                                       memory_limit=p.memory_limit)
             M.setup(H)
             self.operator = M
+            self._subdomain_change = None
         elif lag:
             return M
-        M = M.update(H, geometry() if M.uses_geometry else None)
+        keep = (not subdomains and p.lagged_preconditioner and self._subdomain_change is not None
+                and getattr(M, "subdomains_factored", False) and self._subdomain_change(H) <= p.subdomain_lag_change)
+        geometry = geometry() if M.uses_geometry else None
+        M = M.update_coarse(H, geometry) if keep else M.update(H, geometry)
+        self._subdomains_kept = keep
         if p.lagged_preconditioner:
             self._change = EntryChange(H)
+            if not keep and hasattr(M, "update_coarse"):
+                self._subdomain_change = self._change
         return M
 
     def solve(self, H, rhs, tol, geometry, decrement_tol=None, decrement_left=None):
@@ -241,15 +252,24 @@ class PreconditionedCG(LinearSolver):
         t0 = time.perf_counter()
         H = sp.csr_matrix(H)
         cap = self._lag_cap(H)
-        M = self.preconditioner(H, geometry, lag=cap is not None)
+        lagged = cap is not None
+        reference = self._cg_after_build
+        M = self.preconditioner(H, geometry, lag=lagged)
+        kept = self._subdomains_kept and not lagged
+        if kept and reference is not None:  # earlier subdomain factors: the lagged M's cap
+            cap = int(p.lag_growth * reference) + 2
         setup = time.perf_counter() - t0
         decrement = {"decrement_tol": decrement_tol, "decrement_left": decrement_left}
         x, info = pcg(H, rhs, M, tol=tol, maxiter=cap if cap is not None else p.cg_max_iterations, **decrement)
         iterations, residuals = info.iterations, list(info.residuals)
-        lagged = cap is not None
-        if lagged and not (info.converged or info.decrement_stop):  # stale: rebuild for H, continue from x
+        if cap is not None and not (info.converged or info.decrement_stop):  # stale: rebuild for H, continue from x
             t2 = time.perf_counter()
-            M = self.preconditioner(H, geometry)
+            if kept:  # the coarse level is H's already: refactorize the subdomains
+                M = M.refactor_subdomains(H)
+                self._subdomain_change = self._change
+            else:
+                M = self.preconditioner(H, geometry, subdomains=True)
+            kept = self._subdomains_kept = False
             setup += time.perf_counter() - t2
             x, info = pcg(H, rhs, M, tol=tol, maxiter=p.cg_max_iterations, x0=x, **decrement)
             iterations += info.iterations
@@ -261,7 +281,7 @@ class PreconditionedCG(LinearSolver):
                            decrement_stop=info.decrement_stop, decrement_bound=info.decrement_bound,
                            lambda_min=info.lambda_min, lambda_max=info.lambda_max,
                            residuals=residuals, tolerance=tol, setup_seconds=setup,
-                           coarse_size=M.coarse_size, rebuilt=self._rebuilt, lagged=lagged)
+                           coarse_size=M.coarse_size, rebuilt=self._rebuilt, lagged=lagged, subdomains_kept=kept)
 
 
 class CostModel:

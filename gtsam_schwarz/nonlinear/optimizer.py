@@ -209,6 +209,7 @@ class SchwarzOptimizer:
             cg_tolerance=result.tolerance, lambda_min=result.lambda_min, lambda_max=result.lambda_max,
             coarse_size=result.coarse_size, preconditioner_rebuilt=result.rebuilt,
             preconditioner_lagged=result.lagged, cg_residuals=result.residuals,
+            subdomains_kept=bool(getattr(result, "subdomains_kept", False)),
             decrement_stop=bool(getattr(result, "decrement_stop", False)),
             decrement_bound=float(getattr(result, "decrement_bound", float("nan"))),
             seconds={"linearize": seconds.get("linearize", 0.0), "export": seconds.get("export", 0.0),

@@ -156,6 +156,27 @@ def test_auto_partition_picks_the_smaller_interface():
     assert interface_count(s, auto) < interface_count(s, seg) / 2
 
 
+def test_two_level_coarse_update_keeps_the_subdomain_factors_of_the_earlier_matrix(two_points):
+    """update_coarse(H2) = one-level part of H1 + coarse level of H2; refactor_subdomains(H2) then
+    equals a fresh preconditioner for H2."""
+    km, H1, H2 = two_points
+    dec = decompose(GraphStructure.from_matrix(H1, km.offsets), 3, "segments", 1)
+    M = make_preconditioner("gdsw", H1, dec, km.translation_mask())
+    solver = M.one_level.solver
+    M.update_coarse(H2)
+    assert M.one_level.solver is solver and M.subdomains_factored
+    old, fresh = (make_preconditioner("gdsw", H, dec, km.translation_mask()) for H in (H1, H2))
+    x = np.cos(np.arange(H1.shape[0]))
+    assert not np.allclose(old.one_level.apply(x), fresh.one_level.apply(x), rtol=1e-6)  # H2 is another matrix
+    assert np.allclose(M.matvec(x), old.one_level.apply(x) + fresh.coarse.apply(x), rtol=1e-9, atol=1e-12)
+    M.refactor_subdomains(H2)
+    assert np.allclose(M.matvec(x), fresh.matvec(x), rtol=1e-9, atol=1e-12)
+    M.release(factors=True)  # released factors are refactorized even by a coarse update
+    assert not M.subdomains_factored
+    M.update_coarse(H1)
+    assert M.subdomains_factored and np.allclose(M.matvec(x), old.matvec(x), rtol=1e-9, atol=1e-12)
+
+
 def test_lagged_preconditioner_is_rebuilt_when_the_poses_move_and_reused_for_rejected_steps():
     prob = square_loops(8, 8, sigma=0.05, seed=1)
     opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(preconditioner="gdsw", method="lm", subdomains=4, lag_distance=1.0))
@@ -233,6 +254,25 @@ def test_a_lagged_solve_beyond_its_cap_is_rebuilt_and_continued():
     assert second.lagged and second.rebuilt and second.converged
     assert np.linalg.norm(H2 @ second.x - g) <= 1e-7 * np.linalg.norm(g)
     assert cap < second.iterations < cap + fresh.iterations + 10
+
+
+def test_subdomain_factors_are_kept_only_while_the_matrix_is_close_and_refactorized_beyond_the_cap():
+    """A rebuild for a far matrix refactorizes the subdomains (the fresh count). With the change
+    test off they are kept: CG stops at the cap, the subdomains are refactorized for the coarse
+    level already built, and CG continues to the tolerance."""
+    solver, first, H, H2, g, geometry, fresh = _far_matrix_sequence(lag_change=0.0)
+    second = solver.solve(H2, g, 1e-8, geometry)
+    assert second.rebuilt and not second.lagged and not second.subdomains_kept
+    assert second.iterations == fresh.iterations
+    third = solver.solve(H2 * (1 + 1e-4), g, 1e-8, geometry)  # a close matrix: coarse level only
+    assert third.rebuilt and third.subdomains_kept and third.converged
+    solver, first, H, H2, g, geometry, fresh = _far_matrix_sequence(lag_change=0.0, subdomain_lag_change=float("inf"))
+    cap = int(3.0 * first.iterations) + 2
+    second = solver.solve(H2, g, 1e-8, geometry)
+    assert second.rebuilt and not second.subdomains_kept and second.converged
+    assert np.linalg.norm(H2 @ second.x - g) <= 1e-7 * np.linalg.norm(g)
+    assert cap < second.iterations < cap + fresh.iterations + 10
+    assert solver._subdomain_change(H2) == 0.0  # refactorized for H2
 
 
 def test_entry_change_is_the_scaled_rms_change_of_the_entries():
@@ -353,9 +393,10 @@ def test_lm_on_a_lawnmower_keeps_the_preconditioner_for_the_solve_that_confirms_
 
     prob = lawnmower(40, 40)
     runs = {}
-    for change in (1e-4, 0.0):  # the default, and a rebuild for every changed H
+    for change in (1e-4, 0.0):  # the default, and a rebuild (with the subdomains) for every changed H
         lin = NativeLinearizer.from_arrays(**prob.arrays)
-        opt = SchwarzOptimizer(None, None, SchwarzParams(preconditioner="rgdsw-linear", lag_change=change),
+        opt = SchwarzOptimizer(None, None, SchwarzParams(preconditioner="rgdsw-linear", lag_change=change,
+                                                         subdomain_lag_change=2e-3 if change else 0.0),
                                linearizer=lin)
         opt.optimize()
         assert opt.converged
@@ -363,6 +404,8 @@ def test_lm_on_a_lawnmower_keeps_the_preconditioner_for_the_solve_that_confirms_
     lagged, rebuilt = runs[1e-4].history, runs[0.0].history
     assert [h["preconditioner_rebuilt"] for h in rebuilt] == [True] * len(rebuilt)
     assert lagged[0]["preconditioner_rebuilt"] and lagged[1]["preconditioner_rebuilt"]  # after the first step
+    assert lagged[1]["subdomains_kept"] and not any(h["subdomains_kept"] for h in rebuilt)  # coarse level only
+    assert lagged[1]["cg_iterations"] <= rebuilt[1]["cg_iterations"] + 1
     assert lagged[-1]["preconditioner_lagged"] and not lagged[-1]["preconditioner_rebuilt"]
     assert lagged[-1]["cg_iterations"] <= int(1.5 * lagged[-2]["cg_iterations"]) + 2  # within its cap
     assert abs(runs[1e-4].error() - runs[0.0].error()) <= 1e-9 * runs[0.0].error()
