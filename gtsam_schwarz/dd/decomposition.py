@@ -53,7 +53,7 @@ class Decomposition:
         rows = np.r_[structure.edges[:, 0], structure.edges[:, 1]]
         cols = np.r_[part, part]
         # vertices without edges (only unary factors) join subdomain 0
-        isolated = np.setdiff1d(np.arange(nv), rows)
+        isolated = np.flatnonzero(np.bincount(rows, minlength=nv) == 0)  # (np.setdiff1d: 0.87 s at 360k poses)
         rows = np.r_[rows, isolated]
         cols = np.r_[cols, np.zeros(len(isolated), dtype=np.int64)]
         S0 = _binary(sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(nv, N)))
