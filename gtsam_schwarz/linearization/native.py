@@ -451,7 +451,7 @@ class NativeLinearizer:
             return np.searchsorted(self.keys, k)
 
         self._k2 = self._k3 = None
-        self._base = None  # (gtsam.Values read by state(), its Pose2 state, the rows read): the base of values()
+        self._base = None  # (gtsam.Values read by state(), its state, the rows read): the base of values()
         rows, cols = [], []
         for d, spec in ((3, k2), (6, k3)):
             if spec is None:
@@ -609,14 +609,19 @@ class NativeLinearizer:
             rows = self._rows(values, self._k3.keys, gtsam.utilities.allPose3s, gtsam.utilities.extractPose3)
             st.R3 = np.ascontiguousarray(rows[:, :9].reshape(-1, 3, 3))
             st.t3 = np.ascontiguousarray(rows[:, 9:12])
+            read = rows
         if self._others is not None and self._others.var_keys:
             st.others = values.extract(self._others.var_keys)
-        elif self._k3 is None and self._k2 is not None and values.size() == len(self._k2.keys):
+        elif (self._k2 is None) != (self._k3 is None) and values.size() == len(self._kind().keys):
             # the result will be these values retracted (one C++ call) by the local coordinates of the
-            # final poses, not 2·n pybind11 calls building Pose2s and inserting them. Referenced, not
+            # final poses, not 2·n pybind11 calls building poses and inserting them. Referenced, not
             # copied (262 145 poses: 85 ms); values() checks that they still hold what was read.
-            self._base = (values, st.pose2, read)
+            self._base = (values, st, read)
         return st
+
+    def _kind(self):
+        """The one pose kind of a graph of Pose2s only or Pose3s only."""
+        return self._k2 if self._k2 is not None else self._k3
 
     @staticmethod
     def _rows(values, keys, all_of, extract) -> np.ndarray:
@@ -634,27 +639,44 @@ class NativeLinearizer:
         return table[order[pos]]
 
     def values(self, state: NativeState) -> gtsam.Values:
-        """``gtsam.Values`` of ``state`` (only when asked for). A graph of Pose2s only, read from one
-        ``gtsam.Values``: that Values retracted by the final poses' local coordinates (GTSAM's
-        retract, C++; 262 145 poses 0.68 -> 0.49 s); otherwise one insert per pose."""
-        if self._base is not None and state.others is None and state.pose2 is not None and self._base_unchanged():
-            base, P0, _ = self._base
-            delta = nk.pose2_local(P0, state.pose2)
+        """``gtsam.Values`` of ``state`` (only when asked for). A graph of Pose2s only or Pose3s only,
+        read from one ``gtsam.Values``: that Values retracted by the final poses' local coordinates
+        (GTSAM's retract, C++; 262 145 Pose2s 0.68 -> 0.49 s, 2 500 Pose3s 17.5 -> 6 ms); otherwise
+        one insert per pose. Pose3s are read back and compared (GTSAM's Pose3 chart is a build
+        option): a chart other than :func:`~.native_kernels.pose3_retract`'s falls back to inserts."""
+        if self._base is not None and state.others is None and self._base_unchanged():
+            base, start, _ = self._base
+            if self._k2 is not None:
+                delta = nk.pose2_local(start.pose2, state.pose2)
+            else:
+                delta = nk.pose3_local(start.R3, start.t3, state.R3, state.t3)
             vv = gtsam.VectorValues()
-            deque(map(vv.insert, self._k2.keys.tolist(), delta), maxlen=0)  # the calls without a Python loop
-            return base.retract(vv)
+            deque(map(vv.insert, self._kind().keys.tolist(), delta), maxlen=0)  # the calls without a Python loop
+            out = base.retract(vv)
+            if self._k2 is not None or self._same_poses3(out, state):
+                return out
         out = gtsam.Values(state.others) if state.others is not None else gtsam.Values()
         self._insert_poses(out, state, None, None)
         return out
 
+    def _same_poses3(self, values: gtsam.Values, state: NativeState, tol: float = 1e-9) -> bool:
+        """Whether ``values`` holds the state's Pose3s (to ``tol`` in rotation entries and relative
+        translation), by one C++ extraction."""
+        rows = self._rows(values, self._k3.keys, gtsam.utilities.allPose3s, gtsam.utilities.extractPose3)
+        R, t = rows[:, :9].reshape(-1, 3, 3), rows[:, 9:12]
+        scale = 1.0 + np.abs(state.t3).max(initial=0.0)
+        return bool(np.abs(R - state.R3).max(initial=0.0) <= tol and np.abs(t - state.t3).max(initial=0.0) <= tol * scale)
+
     def _base_unchanged(self) -> bool:
         """Whether the values read by state() still hold the poses read (the caller may have changed
-        them since): their size, keys and (x, y, θ), by one C++ extraction (262 145 poses: 40 ms)."""
+        them since): their size, keys and poses, by one C++ extraction (262 145 Pose2s: 40 ms)."""
         base, _, read = self._base
         if base.size() != len(read):
             return False
+        kinds = ((gtsam.utilities.allPose2s, gtsam.utilities.extractPose2) if self._k2 is not None
+                 else (gtsam.utilities.allPose3s, gtsam.utilities.extractPose3))
         try:
-            now = self._rows(base, self._k2.keys, gtsam.utilities.allPose2s, gtsam.utilities.extractPose2)
+            now = self._rows(base, self._kind().keys, *kinds)
             return bool(np.array_equal(now, read))
         except KeyError:
             return False

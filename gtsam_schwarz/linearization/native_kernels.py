@@ -777,14 +777,7 @@ def pose3_residual(R: np.ndarray, t: np.ndarray, F: Pose3Factors) -> Pose3Residu
         dt = tj - t[F.i]
     RE = np.matmul(M, Rj)
     d = np.einsum("nij,nj->ni", M, dt)
-    tE = d - F.u
-    w = so3_logmap(RE)
-    theta = np.linalg.norm(w, axis=-1)
-    beta = beta_coeff(theta)
-    alpha = 1.0 - beta * theta * theta
-    wxt = np.cross(w, tE)
-    v = alpha[:, None] * tE - 0.5 * wxt + (beta * np.einsum("ni,ni->n", w, tE))[:, None] * w
-    e = np.concatenate([w, v], axis=1)
+    e, theta, beta = se3_logmap(RE, d - F.u)
     we = np.einsum("nij,nj->ni", F.R, e)
     s2 = np.einsum("ni,ni->n", we, we)
     if F.robust is None:
@@ -793,6 +786,22 @@ def pose3_residual(R: np.ndarray, t: np.ndarray, F: Pose3Factors) -> Pose3Residu
         weight, rho = F.robust.weight_loss(s2)
         error = float(rho.sum())
     return Pose3Residual(e, we, s2, RE, d, theta, beta, weight, error)
+
+
+def se3_logmap(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Log of (R, t) in (ω, v) order, ω = Log R, v = Jl(ω)⁻¹ t; also θ = ‖ω‖ and β(θ)."""
+    w = so3_logmap(R)
+    theta = np.linalg.norm(w, axis=-1)
+    beta = beta_coeff(theta)
+    alpha = 1.0 - beta * theta * theta
+    v = alpha[:, None] * t - 0.5 * np.cross(w, t) + (beta * np.einsum("ni,ni->n", w, t))[:, None] * w
+    return np.concatenate([w, v], axis=1), theta, beta
+
+
+def pose3_local(R0: np.ndarray, t0: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(n, 6) local coordinates ξ with (R, t) = (R0, t0) ⊕ ξ (:func:`pose3_retract`): Log((R0, t0)⁻¹(R, t))."""
+    R0t = R0.transpose(0, 2, 1)
+    return se3_logmap(np.matmul(R0t, R), np.einsum("nij,nj->ni", R0t, t - t0))[0]
 
 
 def pose3_jr_inv(e: np.ndarray, theta: np.ndarray, beta: np.ndarray) -> np.ndarray:

@@ -202,11 +202,20 @@ def test_retract_matches_values_retract(kind):
             assert np.allclose(new.atPose3(k).matrix(), ref.atPose3(k).matrix(), atol=1e-12)
 
 
-def test_pose2_values_by_retraction_equal_inserted_poses():
-    """A Pose2 graph's result Values (the Values read, retracted by the local coordinates of the final
-    poses) equals the Values built pose by pose; once the caller changed theirs, the poses are inserted."""
+def _vector_values(lin, delta):
+    vv = gtsam.VectorValues()
+    for k, v in zip(lin.keys.tolist(), delta):
+        vv.insert(k, v)
+    return vv
+
+
+@pytest.mark.parametrize("kind", ["pose2", "pose3"])
+def test_values_by_retraction_equal_inserted_poses(kind, monkeypatch):
+    """A Pose2-only or Pose3-only graph's result Values (the Values read, retracted by the local
+    coordinates of the final poses) equals the Values built pose by pose; once the caller changed
+    theirs, or where GTSAM's retraction would not give the poses back, the poses are inserted."""
     rng = np.random.default_rng(4)
-    graph, values = pose_graph("pose2", 60, "diagonal", rng)
+    graph, values = pose_graph(kind, 60, "diagonal", rng)
     lin = NativeLinearizer(graph, values)
     st = lin.state(values)
     assert lin._base is not None  # the fast path is taken
@@ -216,13 +225,29 @@ def test_pose2_values_by_retraction_equal_inserted_poses():
     fast = lin.values(moved)
     slow = gtsam.Values()
     lin._insert_poses(slow, moved, None, None)
+    if kind == "pose2":
+        close = lambda a, b, tol: pose2_close(a.atPose2(k), b.atPose2(k), tol)  # noqa: E731
+    else:
+        close = lambda a, b, tol: np.allclose(a.atPose3(k).matrix(), b.atPose3(k).matrix(), atol=tol)  # noqa: E731
+    for k in lin.keys.tolist():
+        assert close(fast, slow, 1e-12)
+    if kind == "pose3":  # a chart that does not give the poses back (here: a wrong Log): inserted
+        from gtsam_schwarz.linearization import native_kernels
+        local = native_kernels.pose3_local
+        monkeypatch.setattr(native_kernels, "pose3_local", lambda *a: local(*a) * 1.001)
+        assert not lin._same_poses3(values.retract(_vector_values(lin, native_kernels.pose3_local(
+            st.R3, st.t3, moved.R3, moved.t3))), moved)
+        for k in lin.keys.tolist():
+            assert close(lin.values(moved), slow, 1e-14)
+        monkeypatch.setattr(native_kernels, "pose3_local", local)
     k0 = lin.keys.tolist()[7]
-    values.update(k0, gtsam.Pose2(1e3, -1e3, 0.5))  # the caller's Values changes after it was read
+    values.update(k0, gtsam.Pose2(1e3, -1e3, 0.5) if kind == "pose2"
+                  else gtsam.Pose3(gtsam.Rot3.Rz(0.5), np.array([1e3, -1e3, 2.0])))  # the caller's Values changes
     assert not lin._base_unchanged()
     after = lin.values(moved)
     assert fast.size() == slow.size() == after.size() == len(lin.keys)
     for k in lin.keys.tolist():
-        assert pose2_close(fast.atPose2(k), slow.atPose2(k), 1e-12) and pose2_close(after.atPose2(k), slow.atPose2(k), 1e-14)
+        assert close(after, slow, 1e-14)
 
 
 def test_pose2_retract_tiny_rotation_is_accurate():
