@@ -135,8 +135,7 @@ class TwoLevelSchwarz(SumOperator):
                                               self.rotation, self.translation_mask, self.extension, recycle=previous)
         del previous
         if subdomains or not self._subdomains_factored:
-            self.one_level.update(A)
-            self._subdomains_factored = True
+            self.refactor_subdomains(A)
         self.coarse = CoarseCorrection(self.coarse_space)
         self.parts = [self.one_level, self.coarse]
         return self
