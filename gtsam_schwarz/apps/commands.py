@@ -208,7 +208,7 @@ def add_solve(sub) -> None:
                         "a cost model from the symbolic analysis predicts faster for this graph), 'direct', or a "
                         "CG preconditioner (gdsw: two-level Schwarz with the GDSW coarse space, …)")
     p.add_argument("--subdomains", type=positive_int, default=None, metavar="N",
-                   help="number of subdomains (default: about 250 poses each in 2D, 32 in 3D (64 under 16 384 poses))")
+                   help="number of subdomains (default: about 100 poses each in 2D (250 with exact steps), 32 in 3D (64 under 16 384 poses))")
     p.add_argument("--partition", choices=PARTITIONS, default="auto",
                    help="how to cut the graph: trajectory segments, METIS, or auto (whichever gives fewer "
                         "interface poses; default)")
@@ -472,7 +472,7 @@ def add_compare(sub) -> None:
     p.add_argument("file", help="g2o (VERTEX_SE2/EDGE_SE2, SE3:QUAT) or TORO (VERTEX2/EDGE2) file")
     _add_strict(p)
     p.add_argument("--subdomains", type=positive_int, default=None, metavar="N",
-                   help="number of subdomains for ours (default: about 250 poses each in 2D, 32 in 3D (64 under 16 384 poses))")
+                   help="number of subdomains for ours (default: about 100 poses each in 2D (250 with exact steps), 32 in 3D (64 under 16 384 poses))")
     p.add_argument("--partition", choices=PARTITIONS, default="auto",
                    help="how ours cuts the graph (default auto)")
     p.add_argument("--ground-truth", metavar="FILE.g2o|FILE.tum",

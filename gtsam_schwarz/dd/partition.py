@@ -74,25 +74,35 @@ def auto_partition(structure: GraphStructure, n_subdomains: int) -> np.ndarray:
 # docs/survey.md, "Subdomain size in 3D"), and with inexact steps (11–18 CG per solve) 32 poses
 # beat 64 on large graphs (LM, survey 45x45x45: 38.5 vs 44.6 s; 32x32x32: 10.6 vs 12.0 s) but not on
 # small ones (8x24x24, 4 608 poses: 1.48 vs 1.35 s), which keep 64 (``SMALL_GRAPH_SUBDOMAIN_SIZE``).
-# In 2D, 250 poses: with inexact steps (8–14 CG per solve) the setup dominates, and it shrinks with the subdomains (lawnmower 600x600, LM with rgdsw-linear:
-# 500 poses 42.2 s, 250 30.7 s, 150 28.8 s, 100 27.4 s) while a solve to 1e-8 stays within 40 CG
-# (300x300: 35 at 500, 38 at 250, 43 at 150; docs/survey.md, "Subdomain size in 2D").
+# In 2D, 250 poses for solves to 1e-8: the setup shrinks with the subdomains while such a solve stays
+# within 40 CG (300x300: 35 at 500, 38 at 250, 43 at 150, 49 at 100; docs/survey.md, "Subdomain size
+# in 2D"). With inexact steps (13–17 CG per solve: forcing "auto", the default) the setup dominates
+# and 100 poses are faster (LM with rgdsw-linear, one run each, ``INEXACT_SUBDOMAIN_SIZE``):
+# lawnmower 600x600 250 poses 24.6 / 24.6 s, 100 21.8 / 21.0 s; 1000x1000 68.8 / 72.2 against
+# 70.6 / 60.9 s; 300x300 4.5 / 4.8 against 4.3 / 3.9 s; peaks 6-13 % lower (docs/survey.md,
+# "Thirteenth pass"). In 3D the 32-pose default is already the inexact steps' choice.
 DEFAULT_SUBDOMAIN_SIZE = {3: 250, 6: 32}
+INEXACT_SUBDOMAIN_SIZE = {3: 100}  # where the steps are solved to Eisenstat-Walker tolerances
 SMALL_GRAPH_SUBDOMAIN_SIZE = {6: (16_384, 64)}  # (graphs with fewer poses than this, their size)
 
 
-def default_subdomain_size(n_vertices: int, dofs_per_pose: int = 3) -> int:
-    """Poses per subdomain by pose dimension and graph size (:data:`DEFAULT_SUBDOMAIN_SIZE`,
-    :data:`SMALL_GRAPH_SUBDOMAIN_SIZE`)."""
+def default_subdomain_size(n_vertices: int, dofs_per_pose: int = 3, inexact: bool = False) -> int:
+    """Poses per subdomain by pose dimension, graph size and whether the steps are solved inexactly
+    (:data:`DEFAULT_SUBDOMAIN_SIZE`, :data:`INEXACT_SUBDOMAIN_SIZE`, :data:`SMALL_GRAPH_SUBDOMAIN_SIZE`)."""
     below, size = SMALL_GRAPH_SUBDOMAIN_SIZE.get(dofs_per_pose, (0, 0))
-    return size if n_vertices < below else DEFAULT_SUBDOMAIN_SIZE.get(dofs_per_pose, 250)
+    if n_vertices < below:
+        return size
+    if inexact and dofs_per_pose in INEXACT_SUBDOMAIN_SIZE:
+        return INEXACT_SUBDOMAIN_SIZE[dofs_per_pose]
+    return DEFAULT_SUBDOMAIN_SIZE.get(dofs_per_pose, 250)
 
 
-def default_subdomains(n_vertices: int, subdomain_size: int | None = None, dofs_per_pose: int = 3) -> int:
+def default_subdomains(n_vertices: int, subdomain_size: int | None = None, dofs_per_pose: int = 3,
+                       inexact: bool = False) -> int:
     """Number of subdomains chosen from the size: about ``subdomain_size`` poses each (None:
     :func:`default_subdomain_size`)."""
     if subdomain_size is None:
-        subdomain_size = default_subdomain_size(n_vertices, dofs_per_pose)
+        subdomain_size = default_subdomain_size(n_vertices, dofs_per_pose, inexact)
     return max(1, int(round(n_vertices / max(subdomain_size, 1))))
 
 

@@ -174,7 +174,7 @@ class PreconditionedCG(LinearSolver):
         if p.subdomains is not None:
             return p.subdomains
         dims = np.diff(self.offsets)
-        return default_subdomains(nv, p.subdomain_size, int(np.bincount(dims).argmax()) if nv else 3)
+        return default_subdomains(nv, p.subdomain_size, int(np.bincount(dims).argmax()) if nv else 3, p.inexact_krylov)
 
     def _decompose(self, H):
         if self.decomposition is None:
@@ -381,7 +381,7 @@ class AutoSolver(LinearSolver):
         self.chosen: LinearSolver | None = None
         self.choice = ""
         self.reason = ""
-        self.model = CostModel(inexact=params.forcing in ("auto", "eisenstat-walker"))
+        self.model = CostModel(inexact=params.inexact_krylov)
         self.on_choice = None  # called with the choice once made (the optimizer frees memory for a build)
 
     @property

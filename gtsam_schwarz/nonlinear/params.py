@@ -45,7 +45,7 @@ class LinearSolverParams:
 
     preconditioner: str = "auto"  # auto | direct | a registered preconditioner (none, jacobi, …, gdsw, rgdsw)
     subdomains: int | None = None  # None: about `subdomain_size` poses each
-    subdomain_size: int | None = None  # None: 250 poses in 2D, 32 in 3D (64 under 16 384 poses; dd.partition.default_subdomain_size)
+    subdomain_size: int | None = None  # None: 100 poses in 2D (250 with forcing "none"), 32 in 3D (64 under 16 384 poses; dd.partition.default_subdomain_size)
     partition: str = "auto"  # auto (segments or metis, the smaller interface) | segments | metis
     overlap: int | None = None  # None: 0 for rgdsw-linear / gdsw-linear (their edge subdomains share the interface
     # poses already; one layer more cost time and CG iterations on every survey, docs/survey.md), 1 otherwise
@@ -99,6 +99,11 @@ class LinearSolverParams:
         if self.overlap is not None:
             return self.overlap
         return 0 if (preconditioner or self.preconditioner) in ("rgdsw-linear", "gdsw-linear", "auto") else 1
+
+    @property
+    def inexact_krylov(self) -> bool:
+        """Whether steps solved by preconditioned CG go to Eisenstat-Walker tolerances ("auto" does)."""
+        return self.forcing in ("auto", "eisenstat-walker")
 
 
 @dataclass

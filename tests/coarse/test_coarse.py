@@ -134,12 +134,29 @@ def test_rank_deficient_coarse_basis_drops_dependent_vectors():
 
 
 def test_default_subdomain_size_by_dimension_and_graph_size():
-    """About 250 poses per 2D subdomain; 32 per 3D subdomain, 64 on 3D graphs under 16 384 poses."""
+    """About 250 poses per 2D subdomain for exact steps, 100 for inexact ones; 32 per 3D subdomain,
+    64 on 3D graphs under 16 384 poses."""
     from gtsam_schwarz.dd import default_subdomains
     assert default_subdomains(360_000, None, 3) == 1440
+    assert default_subdomains(360_000, None, 3, inexact=True) == 3600
     assert default_subdomains(4_608, None, 6) == 72
+    assert default_subdomains(4_608, None, 6, inexact=True) == 72
     assert default_subdomains(91_125, None, 6) == 2848
+    assert default_subdomains(91_125, None, 6, inexact=True) == 2848
     assert default_subdomains(91_125, 1000, 6) == 91  # an explicit size wins
+    assert default_subdomains(360_000, 1000, 3, inexact=True) == 360
+
+
+def test_preconditioned_cg_sizes_subdomains_by_the_forcing():
+    """The linear solver passes whether its steps are inexact: forcing "auto" (the default) and
+    "eisenstat-walker" take the inexact size, "none" the exact one."""
+    from gtsam_schwarz.nonlinear.linear_solver import PreconditionedCG
+    from gtsam_schwarz.nonlinear.params import LinearSolverParams
+    offsets = np.arange(0, 3 * 10_000 + 1, 3)
+    counts = {f: PreconditionedCG(LinearSolverParams(preconditioner="rgdsw-linear", forcing=f), offsets,
+                                  np.ones(30_000, dtype=bool)).n_subdomains()
+              for f in ("auto", "eisenstat-walker", "none")}
+    assert counts == {"auto": 100, "eisenstat-walker": 100, "none": 40}
 
 
 def test_rows_to_csr_reads_column_major_rows_in_blocks():
