@@ -167,7 +167,8 @@ def fill_part(surveys, progress) -> list[dict]:
                "direct_factor_bytes": float(FACTOR_BYTES * cost.nnz_L)}
         for solver in ("direct", FILL_SCHWARZ):
             progress.start(f"fill: {name}, {solver}")
-            row[solver] = _one_solve(H, rhs, offsets, mask, geometry, solver)
+            # a solve to 1e-8 is an exact step: the exact steps' subdomain size (forcing "none")
+            row[solver] = _one_solve(H, rhs, offsets, mask, geometry, solver, forcing="none")
             progress.done()
         progress.start(f"fill: {name}, auto's choice")
         # what `auto` would run for a solve to 1e-8, as both were just measured (exact steps: forcing "none")
