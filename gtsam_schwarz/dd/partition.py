@@ -57,6 +57,7 @@ NESTED_FROM = 512
 
 
 def _kway(adj: sp.csr_matrix, n_parts: int, seed: int) -> np.ndarray:
+    """Vertex → part by one METIS k-way call (all in part 0 for a single part)."""
     if n_parts <= 1:
         return np.zeros(adj.shape[0], dtype=np.int64)
     _, parts = pymetis.part_graph(n_parts, adjacency=pymetis.CSRAdjacency(adj.indptr, adj.indices),
@@ -84,7 +85,7 @@ def metis_parts(adj: sp.csr_matrix, n_parts: int, seed: int = 0) -> np.ndarray:
     group_of = groups[order]
     keep = group_of[row] == group_of[P.indices]
     indptr = np.r_[0, np.cumsum(np.bincount(row[keep], minlength=nv))]
-    B = sp.csr_matrix((np.ones(len(indptr) and int(indptr[-1])), P.indices[keep], indptr), shape=P.shape)
+    B = sp.csr_matrix((np.ones(int(indptr[-1])), P.indices[keep], indptr), shape=P.shape)
     del P, row, keep
     parts = np.empty(nv, dtype=np.int64)
     for g in range(n_groups):  # a loop over ~√N groups, each one METIS call
