@@ -173,17 +173,10 @@ def _solve_ours(graph, initial, overrides: dict, arrays: dict | None = None) -> 
 
 
 def _load_our_modules() -> None:
-    """Import what our optimizer imports on first use, so that module loading stays outside the
-    timed solve, as it does for GTSAM and g2o (imported before their timers start): the native
-    linearizer's modules (18 ms), and the optimizer with its linear solvers, Schwarz operators, chordal
-    start and CHOLMOD's binding (39 modules, 60-80 ms, which the first timed run used to import).
-    Work done on first use is still timed."""
+    """Import what our optimizer imports on first use (the native linearizer's modules, 18 ms;
+    threadpoolctl), so that module loading stays outside the timed solve, as it does for GTSAM
+    and g2o (imported before their timers start). Work done on first use is still timed."""
     from ..linearization import native  # noqa: F401
-    from ..nonlinear import SchwarzOptimizer  # noqa: F401  (linear solvers, Schwarz, chordal start)
-    from ..nonlinear import initialize, linear_solver  # noqa: F401
-    from ..schwarz import two_level  # noqa: F401
-    from ..solvers import sparse  # noqa: F401  (CHOLMOD through scikit-sparse, where installed)
-    from . import compare  # noqa: F401
     try:
         import threadpoolctl  # noqa: F401
     except ImportError:
