@@ -501,8 +501,8 @@ class Forcing:
         self.exact_next = False
 
     def inexact(self) -> bool:
-        mode = self.params.forcing
-        return mode == "eisenstat-walker" or (mode == "auto" and bool(self.krylov()))
+        p = self.params  # "auto" only while the steps are solved by preconditioned CG
+        return p.inexact_krylov and (p.forcing != "auto" or bool(self.krylov()))
 
     def tolerance(self, gnorm: float) -> float:
         p = self.params
