@@ -184,15 +184,24 @@ def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
     return x, info
 
 
+def _column_dots(U: np.ndarray, V: np.ndarray) -> np.ndarray:
+    """Re(u_jᴴ v_j) for every column j (real arrays: no conjugated copy)."""
+    if np.iscomplexobj(U):
+        return np.einsum("ij,ij->j", U.conj(), V).real
+    return np.einsum("ij,ij->j", U, V)
+
+
 def pcg_columns(A, B, M=None, tol: float = 1e-8, maxiter: int | None = None) -> tuple[np.ndarray, list[CGInfo]]:
     """Independent preconditioned CG solves of A X = B, one per column of B (n, k), run side by side:
     each iteration applies A and M once to all columns still running (a few right-hand sides cost
     little more than one where A and M are bound by memory traffic). Column j stops when
-    ‖b_j − A x_j‖₂ ≤ tol·‖b_j‖₂, as :func:`pcg`."""
-    B = np.asarray(B, dtype=float)
+    ‖b_j − A x_j‖₂ ≤ tol·‖b_j‖₂, as :func:`pcg`. Complex B: A and M Hermitian positive definite
+    (inner products conjugated), e.g. 2D rotations as unit complex numbers."""
+    B = np.asarray(B)
+    B = B.astype(complex if np.iscomplexobj(B) else float, copy=False)
     n, k = B.shape
     maxiter = 10 * n if maxiter is None else int(maxiter)
-    X = np.zeros((n, k))
+    X = np.zeros((n, k), dtype=B.dtype)
     R = B.copy()
     bnorm = np.linalg.norm(B, axis=0)
     residuals = [[1.0 if b > 0 else 0.0] for b in bnorm]
@@ -205,7 +214,7 @@ def pcg_columns(A, B, M=None, tol: float = 1e-8, maxiter: int | None = None) -> 
         if not len(active):
             break
         Z = _apply(M, R[:, active])
-        g_new = np.einsum("ij,ij->j", R[:, active], Z)
+        g_new = _column_dots(R[:, active], Z)
         if P is None:
             P = Z
         else:
@@ -215,7 +224,7 @@ def pcg_columns(A, B, M=None, tol: float = 1e-8, maxiter: int | None = None) -> 
             P = Z + P * beta
         gamma = g_new
         Q = A @ P
-        alpha = gamma / np.einsum("ij,ij->j", P, Q)
+        alpha = gamma / _column_dots(P, Q)
         X[:, active] += P * alpha
         R[:, active] -= Q * alpha
         rel = np.linalg.norm(R[:, active], axis=0) / bnorm[active]

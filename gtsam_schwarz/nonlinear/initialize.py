@@ -26,24 +26,36 @@ INITIALIZATIONS = ("file", "chordal")
 CG_SECONDS_PER_ENTRY = 1.1e-6
 DIRECT_SLOWDOWN = 1.5
 CG_MIN_POSES = 4096  # below, the factorization costs too little to be worth its analysis
+# 2D: one complex unknown per pose, by CG on aggregates (``chordal._AggregateSchwarz``) to CG_TOL_2D or
+# factorized twice (rotations, then translations as x + iy on the same factor). Lawnmower 200x200,
+# 300x300, 600x600, 1000x1000: CG 0.19 / 0.45 / 2.1 / 8.5 s (1.0-1.7 µs per entry of the one-unknown
+# matrix, CG_SECONDS_PER_ENTRY with a margin), direct 0.28 / 0.75 / 3.7 / 12.5 s, 3.6-3.9× the linear
+# solver's cost model of a real factorization of the vertex pattern (complex numbers and two
+# factorizations); the 262 145-pose model problem (no fill) 0.17 s direct against 0.9 s CG
+DIRECT_SLOWDOWN_2D = 3.7
+CG_MIN_POSES_2D = 16384  # below, CG and the factorization take about the same (lawnmower 100x100: 0.05 s)
 # a start for the nonlinear loop, not its answer: 3D survey 32x32x32 LM ends at the same error to 1e-10
 # relative from starts solved to 1e-4 and 1e-6 (91 125 poses: 19 instead of 31 CG per column, -2.1 s),
 # and from 1e-2: the same LM iterations and final error to 3e-11 (32x32x32), 2.3e-8 (45x45x45) and
 # 5e-12 (torus3D, forced Schwarz); the start costs 1.13 s instead of 1.56 s at 32x32x32
 CG_TOL = 1e-2
+# 2D lawnmowers from a start solved to 1e-2 end 1.3e-7 (600x600, 1000x1000) above the exact start's LM
+# error; from 1e-3 below it (1076.122861 and 2993.952033 against 1076.122895 and 2993.952050), for
+# 15 + 29 CG instead of 8 + 20 at 360 000 poses (+0.4 s)
+CG_TOL_2D = 1e-3
 
 
 def rotation_solver(n: int, i: np.ndarray, j: np.ndarray, d: int) -> tuple[str, str]:
-    """"cg" or "direct" for the chordal rotation system, and why: direct in 2D (one complex unknown
-    per pose) and on small or sparse graphs, CG where the 3×3-block factor fills in. The analysis is
-    the vertex pattern's, the same one the automatic linear solver makes of H next (kept: done once)."""
-    if d != 3 or n < CG_MIN_POSES:
+    """"cg" or "direct" for the chordal systems, and why: direct on small or sparse graphs, CG where
+    the factor fills in (3×3 blocks in 3D, one complex unknown per pose in 2D). The analysis is the
+    vertex pattern's, the same one the automatic linear solver makes of H next (kept: done once)."""
+    if n < (CG_MIN_POSES if d == 3 else CG_MIN_POSES_2D):
         return "direct", ""
     nodes = np.arange(n)
     B = sp.csr_matrix((np.ones(2 * len(i) + n), (np.r_[i, j, nodes], np.r_[j, i, nodes])), shape=(n, n))
     B.sum_duplicates()
-    cost = pattern_cholesky_cost(B, np.full(n, d))
-    t_direct = DIRECT_SLOWDOWN * CostModel().direct(cost)
+    cost = pattern_cholesky_cost(B, np.full(n, d if d == 3 else 1))
+    t_direct = (DIRECT_SLOWDOWN if d == 3 else DIRECT_SLOWDOWN_2D) * CostModel().direct(cost)
     t_cg = CG_SECONDS_PER_ENTRY * cost.nnz_A
     choice = "cg" if t_cg < t_direct else "direct"
     return choice, f"rotations {choice}: {t_direct:.3g} s direct vs {t_cg:.3g} s CG predicted"
@@ -52,8 +64,9 @@ def rotation_solver(n: int, i: np.ndarray, j: np.ndarray, d: int) -> tuple[str, 
 def chordal_state(linearizer, state, solver: str = "auto"):
     """The chordal initialization of a pure pose graph as a new linearizer state (None if the
     linearizer cannot describe its graph as one, e.g. with landmarks). ``solver``: "direct", "cg",
-    "auto" (:func:`rotation_solver`) or "cg-3d" (CG for 3D graphs from ``CG_MIN_POSES`` poses, no
-    analysis: for runs whose linear solver is Schwarz-CG by choice). The translations go the same way,
+    "auto" (:func:`rotation_solver`) or "cg-3d" (for runs whose linear solver is Schwarz-CG by choice:
+    CG for 3D graphs from ``CG_MIN_POSES`` poses without an analysis, 2D as "auto", whose analysis of
+    a one-unknown pattern is cheap: 0.16 s at 360 000 poses). The translations go the same way,
     as their scalar Laplacian fills in where the rotation system does (91 125-pose survey: 2.9 s
     direct, 1.2 s CG)."""
     graph = linearizer.pose_graph() if hasattr(linearizer, "pose_graph") else None
@@ -66,11 +79,11 @@ def chordal_state(linearizer, state, solver: str = "auto"):
         anchor, anchor_pose = 0, None
     why = ""
     d = np.asarray(b["R"]).shape[1]
-    if solver == "cg-3d":  # the Gauss-Newton systems go to Schwarz-CG: so do large 3D rotation systems
-        solver = "cg" if d == 3 and graph["n"] >= CG_MIN_POSES else "direct"
-    elif solver == "auto":
+    if solver == "cg-3d" and d == 3:  # the Gauss-Newton systems go to Schwarz-CG: so do large 3D rotation systems
+        solver = "cg" if graph["n"] >= CG_MIN_POSES else "direct"
+    elif solver in ("auto", "cg-3d"):
         solver, why = rotation_solver(graph["n"], np.asarray(b["i"]), np.asarray(b["j"]), d)
-    options = dict(overlap=0, tol=CG_TOL) if solver == "cg" else {}
+    options = dict(overlap=0, tol=CG_TOL if d == 3 else CG_TOL_2D) if solver == "cg" else {}
     result = chordal_initialization(graph["n"], np.column_stack([b["i"], b["j"]]), b["R"], b["t"], b["information"],
                                     anchor=anchor, anchor_pose=anchor_pose, solver=solver, **options)
     if anchor_pose is None:  # no prior: keep the first pose where the given values have it

@@ -432,3 +432,57 @@ def test_3d_direct_path_with_isotropic_translations_matches_real_cg():
         np.testing.assert_allclose(direct.rotations, cg.rotations, atol=1e-9)
         np.testing.assert_allclose(direct.positions, cg.positions, atol=1e-8)
         np.testing.assert_allclose(direct.positions[3], p[3], atol=1e-12)
+
+
+def test_2d_cg_without_overlap_runs_in_complex_numbers():
+    """2D CG on aggregates without overlap: rotations and positions (x + iy) as one complex unknown per
+    pose on one pattern, deflated CG: the direct solution to the tolerance, noise-free graphs exactly,
+    every component anchored, one symbolic analysis each of the aggregate blocks and the coarse matrix."""
+    from gtsam_schwarz.solvers.sparse import SparseCholesky
+    rng = np.random.default_rng(8)
+    R, p = trajectory(300, 2, rng)
+    e, Rij, tij = pose_graph(R, p, 90, rng, noise=0.1)
+    w = rng.uniform(0.5, 4.0, len(e))
+    for info in (w, np.stack([np.diag([x, 2 * x, x]) for x in w])):   # isotropic (x + iy), anisotropic (2×2 blocks)
+        direct = chordal_initialization(300, e, Rij, tij, info, anchor=4, anchor_pose=(R[4], p[4]), solver="direct")
+        cg = chordal_initialization(300, e, Rij, tij, info, anchor=4, anchor_pose=(R[4], p[4]), tol=1e-13,
+                                    overlap=0, aggregate_size=8)
+        np.testing.assert_allclose(cg.rotations, direct.rotations, atol=1e-9)
+        np.testing.assert_allclose(cg.positions, direct.positions, atol=1e-8)
+        assert len(cg.info["rotation_iterations"]) == 1 and cg.info["rotation_converged"]
+        assert cg.info["translation_converged"]
+    iso = chordal_initialization(300, e, Rij, tij, w, tol=1e-13, overlap=0)
+    loose = chordal_initialization(300, e, Rij, tij, w, tol=1e-3, overlap=0)
+    assert sum(loose.info["rotation_iterations"]) < sum(iso.info["rotation_iterations"])
+    assert np.abs(loose.positions - iso.positions).max() > 1e-9   # the tolerance is what CG was given
+
+    Rt, pt = trajectory(200, 2, rng)
+    et, Rijt, tijt = pose_graph(Rt, pt, 40, rng)
+    exact = chordal_initialization(200, et, Rijt, tijt, anchor=7, anchor_pose=(Rt[7], pt[7]), tol=1e-13, overlap=0)
+    np.testing.assert_allclose(exact.rotations, Rt, atol=1e-8)
+    np.testing.assert_allclose(exact.positions, pt, atol=1e-8)
+
+    Ra, pa = trajectory(80, 2, rng)
+    Rb, pb = trajectory(60, 2, rng)
+    ea, Ria, tia = pose_graph(Ra, pa, 15, rng)
+    eb, Rib, tib = pose_graph(Rb, pb, 10, rng, offset=81)   # pose 80 is isolated
+    ec, Ric, tic = np.vstack([ea, eb]), np.concatenate([Ria, Rib]), np.concatenate([tia, tib])
+    calls = []
+    analyze = SparseCholesky.analyze
+
+    def counted(self, K):
+        calls.append(self.what)
+        return analyze(self, K)
+
+    SparseCholesky.analyze = counted
+    try:
+        res = chordal_initialization(141, ec, Ric, tic, anchor=5, tol=1e-13, overlap=0)
+    finally:
+        SparseCholesky.analyze = analyze
+    assert sorted(calls) == ["the chordal aggregate blocks", "the chordal coarse matrix"]
+    assert sorted(res.info["anchors"]) == [5, 80, 81]
+    Ra5, pa5 = relative_to(Ra, pa, 5)
+    Rb0, pb0 = relative_to(Rb, pb, 0)
+    np.testing.assert_allclose(res.rotations[:80], Ra5, atol=1e-8)
+    np.testing.assert_allclose(res.positions[81:], pb0, atol=1e-8)
+    np.testing.assert_allclose(res.positions[80], 0.0)

@@ -129,3 +129,22 @@ def test_pcg_columns_runs_each_column_as_pcg_does():
     assert infos[2].converged and infos[2].iterations == 0 and not X[:, 2].any()
     capped, capped_infos = pcg_columns(A, B[:, :1], M=M, tol=1e-14, maxiter=5)
     assert not capped_infos[0].converged and capped_infos[0].iterations == 5
+
+
+def test_pcg_columns_solves_hermitian_systems_as_their_real_equivalent():
+    """A complex Hermitian A x = b (2D rotations as unit complex numbers) runs as CG on the real
+    symmetric [[Re A, −Im A], [Im A, Re A]] does: the same iterates, so the same iteration count."""
+    rng = np.random.default_rng(5)
+    n = 200
+    phase = np.exp(1j * rng.uniform(-np.pi, np.pi, n - 1))
+    w = rng.uniform(1.0, 3.0, n - 1)
+    off = sp.diags([-w * phase], [1], shape=(n, n))
+    A = (off + off.conj().T + sp.diags(np.r_[w, 0] + np.r_[0, w] + 0.1)).tocsr()
+    b = rng.normal(size=(n, 1)) + 1j * rng.normal(size=(n, 1))
+    X, infos = pcg_columns(A, b, tol=1e-10)
+    assert X.dtype == complex and infos[0].converged
+    assert np.linalg.norm(b[:, 0] - A @ X[:, 0]) <= 1e-10 * np.linalg.norm(b)
+    Ar = sp.bmat([[A.real, -A.imag], [A.imag, A.real]]).tocsr()
+    xr, info = pcg(Ar, np.r_[b.real[:, 0], b.imag[:, 0]], tol=1e-10)
+    assert info.iterations == infos[0].iterations
+    np.testing.assert_allclose(X[:, 0], xr[:n] + 1j * xr[n:], rtol=1e-8, atol=1e-10)
