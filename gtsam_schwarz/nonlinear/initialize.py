@@ -34,6 +34,10 @@ CG_MIN_POSES = 4096  # below, the factorization costs too little to be worth its
 # factorizations); the 262 145-pose model problem (no fill) 0.17 s direct against 0.9 s CG
 DIRECT_SLOWDOWN_2D = 3.7
 CG_MIN_POSES_2D = 16384  # below, CG and the factorization take about the same (lawnmower 100x100: 0.05 s)
+# 2D graphs with fewer independent cycles per pose are not analysed (the model problems have 0.004,
+# the lawnmowers ~1): the analysis (262 145 poses: 80 ms) would repeat the direct start's own, whose
+# simplicial factor hands its column counts to the linear solver for free
+CYCLES_PER_POSE_2D = 0.25
 # a start for the nonlinear loop, not its answer: 3D survey 32x32x32 LM ends at the same error to 1e-10
 # relative from starts solved to 1e-4 and 1e-6 (91 125 poses: 19 instead of 31 CG per column, -2.1 s),
 # and from 1e-2: the same LM iterations and final error to 3e-11 (32x32x32), 2.3e-8 (45x45x45) and
@@ -51,6 +55,8 @@ def rotation_solver(n: int, i: np.ndarray, j: np.ndarray, d: int) -> tuple[str, 
     vertex pattern's, the same one the automatic linear solver makes of H next (kept: done once)."""
     if n < (CG_MIN_POSES if d == 3 else CG_MIN_POSES_2D):
         return "direct", ""
+    if d == 2 and len(i) - n + 1 < CYCLES_PER_POSE_2D * n:
+        return "direct", ""   # nearly a tree: little fill, and the factorization brings its own counts
     nodes = np.arange(n)
     B = sp.csr_matrix((np.ones(2 * len(i) + n), (np.r_[i, j, nodes], np.r_[j, i, nodes])), shape=(n, n))
     B.sum_duplicates()
