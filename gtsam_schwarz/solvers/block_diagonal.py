@@ -40,11 +40,26 @@ def block_diagonal(A: sp.spmatrix, sets) -> sp.csr_matrix:
     return sp.csr_matrix((C.data[keep], (C.row[keep], C.col[keep])), shape=(m, m))
 
 
-def _block_diagonal_by_vertices(A: sp.csr_matrix, sets) -> sp.csr_matrix | None:
+def block_diagonal_positions(A: sp.csr_matrix, sets) -> sp.csr_matrix | None:
+    """The pattern of :func:`block_diagonal` (A, sets) with, as its numbers, the position in A.data of
+    every entry, for sets of whole vertices and one d×d block size (H of a pose graph): no matrix of
+    positions as large as A is formed per chunk, and the entries' positions come from a BSR pattern
+    (lawnmower 600x600, the one-level blocks' three chunks of 17.5M entries: 1.39 against 2.27 s in
+    a run). None where that does not apply."""
+    if sets.vertices is None:
+        return None
+    dims = np.diff(sets.offsets)
+    if not (len(dims) and np.all(dims == dims[0])):
+        return None
+    return _block_diagonal_by_vertices(sp.csr_matrix(A), sets, positions=True)
+
+
+def _block_diagonal_by_vertices(A: sp.csr_matrix, sets, positions: bool = False) -> sp.csr_matrix | None:
     """:func:`block_diagonal` for sets of whole vertices and a matrix made of whole dense vertex
     blocks (H is): the product R A Rᵀ is formed on the vertex pattern (a 9th or 36th of the entries
     for Pose2 / Pose3 blocks) and every kept vertex block is expanded to its dof entries, rows in
-    order (CSR with sorted indices, no sort). None when A is not block-dense."""
+    order (CSR with sorted indices, no sort). None when A is not block-dense. ``positions`` (one
+    block size): the entries' positions in A.data instead of their numbers."""
     from .cost import vertex_pattern
 
     offsets = sets.offsets
@@ -64,6 +79,13 @@ def _block_diagonal_by_vertices(A: sp.csr_matrix, sets) -> sp.csr_matrix | None:
     Bv.sort_indices()
     entry = Bv.data.astype(np.int64) - 1
     vert = sets.vertices
+    if nv and np.all(dims == dims[0]):   # one block size: B is the BSR matrix of A's blocks (u, v) kept in Bv
+        P = _uniform_positions(A, Bv, entry, vert, offsets, col_start, int(dims[0]))
+        if positions:
+            return P
+        B = sp.csr_matrix((A.data[P.data], P.indices, P.indptr), shape=P.shape, copy=False)
+        B.has_sorted_indices = True
+        return B
     dpos = np.cumsum(dims[vert]) - dims[vert]  # dof position of every vertex position
     # 1) each vertex row's entries expanded by the column block's width: dof columns and the
     #    offset of each in the dof rows of A (same for every dof row of the vertex)
@@ -97,6 +119,39 @@ def _block_diagonal_by_vertices(A: sp.csr_matrix, sets) -> sp.csr_matrix | None:
     B = sp.csr_matrix((data, cols, indptr.astype(itype)), shape=(m, m), copy=False)
     B.has_sorted_indices = True
     return B
+
+
+def _uniform_positions(A: sp.csr_matrix, Bv: sp.csr_matrix, entry: np.ndarray, vert: np.ndarray,
+                       offsets: np.ndarray, col_start: np.ndarray, d: int) -> sp.csr_matrix:
+    """For d×d blocks everywhere: entry (a, b) of the kept block (u, v) sits in A's dof row
+    offsets[u] + a at col_start + b; these positions form a BSR matrix on Bv's pattern, turned into
+    CSR by scipy (three passes over the entries instead of seven)."""
+    m = Bv.shape[0] * d
+    itype = np.int32 if max(A.nnz, Bv.nnz * d * d, m) < 2**31 - 1 else np.int64
+    u = vert[np.repeat(np.arange(Bv.shape[0]), np.diff(Bv.indptr))]   # the vertex of every kept block's row
+    first = (A.indptr[offsets[u][:, None] + np.arange(d)] + col_start[entry][:, None]).astype(itype)   # (nb, d)
+    src = first[:, :, None] + np.arange(d, dtype=itype)   # (nb, d, d): positions in A.data
+    del first
+    P = sp.bsr_matrix((src, Bv.indices.astype(itype), Bv.indptr.astype(itype)), shape=(m, m), blocksize=(d, d))
+    del src
+    P = P.tocsr()
+    P.has_sorted_indices = True
+    return P
+
+
+class _BlockDiagonalGather(Gather):
+    """:func:`block_diagonal` (A, sets) as a gather, its positions found directly where
+    :func:`block_diagonal_positions` applies."""
+
+    def __init__(self, sets):
+        super().__init__(lambda M: block_diagonal(M, sets))
+        self.sets = sets
+
+    def _positions(self, A: sp.csr_matrix):
+        P = block_diagonal_positions(A, self.sets)
+        if P is None:
+            return super()._positions(A)
+        return P.data, P.indices, P.indptr, P.shape
 
 
 class BlockDiagonalSolver:
@@ -134,7 +189,7 @@ class BlockDiagonalSolver:
         chunks = []
         for j0, j1 in zip(cuts[:-1], cuts[1:]):
             part = sets.subsets(int(j0), int(j1))
-            chunks.append([int(sets.ptr[j0]), int(sets.ptr[j1]), Gather(lambda M, part=part: block_diagonal(M, part)), None])
+            chunks.append([int(sets.ptr[j0]), int(sets.ptr[j1]), _BlockDiagonalGather(part), None])
         return chunks
 
     def update(self, A: sp.spmatrix) -> "BlockDiagonalSolver":

@@ -48,3 +48,40 @@ def test_a_matrix_without_whole_blocks_takes_the_dof_product():
     B = block_diagonal(H, sets)
     ref = block_diagonal(H, IndexSets(indices=sets.indices, ptr=sets.ptr, n=sets.n))
     assert B.nnz == ref.nnz and abs(B - ref).max() == 0
+
+
+def test_mixed_block_sizes_and_the_positions_gather():
+    """Vertices of 3 and 2 dofs (poses and 2D landmarks) take the general expansion, one block size the
+    positions as a BSR pattern; both equal the dof-level product, and the gather of a one-size H by
+    those positions equals the extraction itself."""
+    from gtsam_schwarz.dd.index_sets import vertex_dofs
+    from gtsam_schwarz.solvers.block_diagonal import _BlockDiagonalGather, block_diagonal_positions
+
+    rng = np.random.default_rng(4)
+    nv = 40
+    edges = np.r_[np.column_stack([np.arange(nv - 1), np.arange(1, nv)]), rng.integers(0, nv, (30, 2))]
+    edges = edges[edges[:, 0] != edges[:, 1]]
+    V = sp.csr_matrix((np.ones(2 * len(edges) + nv), (np.r_[edges[:, 0], edges[:, 1], np.arange(nv)],
+                                                       np.r_[edges[:, 1], edges[:, 0], np.arange(nv)])), shape=(nv, nv))
+    groups = [np.arange(0, 15), np.arange(10, 28), np.arange(25, 40)]   # overlapping vertex sets
+    for dims in (rng.choice([2, 3], nv), np.full(nv, 3)):
+        offsets = np.r_[0, np.cumsum(dims)]
+        owner = np.repeat(np.arange(nv), dims)
+        n = int(offsets[-1])
+        mask = V[owner][:, owner]
+        H = _positions(sp.csr_matrix((np.ones(mask.nnz), mask.indices, mask.indptr), shape=(n, n)))
+        vertices = np.concatenate(groups)
+        vertex_ptr = np.r_[0, np.cumsum([len(g) for g in groups])]
+        indices = vertex_dofs(vertices, offsets)
+        ptr = np.r_[0, np.cumsum([int(dims[g].sum()) for g in groups])]
+        sets = IndexSets(indices=indices, ptr=ptr, n=n, vertices=vertices, vertex_ptr=vertex_ptr, offsets=offsets)
+        by_vertices = block_diagonal(H, sets)
+        by_dofs = block_diagonal(H, IndexSets(indices=indices, ptr=ptr, n=n))
+        by_dofs.sort_indices()
+        for a in ("indptr", "indices", "data"):
+            assert np.array_equal(getattr(by_vertices, a), getattr(by_dofs, a))
+        P = block_diagonal_positions(H, sets)
+        assert (P is None) == bool(np.any(dims != 3))
+    gathered = _BlockDiagonalGather(sets)(H)
+    assert np.array_equal(gathered.data, P.data + 1) and np.array_equal(gathered.indices, by_dofs.indices)
+    assert np.array_equal(gathered.data, by_dofs.data)
