@@ -95,8 +95,9 @@ class _Group:
 
     def __init__(self, interior: np.ndarray, sub: np.ndarray, gamma: np.ndarray, n: int):
         self.interior, self.sub = interior, sub
-        self.A_II = Submatrix(interior, interior, n)
-        self.A_IG = Submatrix(interior, gamma, n)
+        self._shared: dict = {}   # the interior rows' entries, found once for both gathers
+        self.A_II = Submatrix(interior, interior, n, self._shared)
+        self.A_IG = Submatrix(interior, gamma, n, self._shared)
         self.factor = None
         self._released = None  # A's pattern when the factor's numbers and the gathers were dropped
 
@@ -119,6 +120,7 @@ class _Group:
             self.factor = None
         self.A_II.forget()
         self.A_IG.forget()
+        self._shared.clear()
 
 
 def _digest(*arrays: np.ndarray) -> bytes:

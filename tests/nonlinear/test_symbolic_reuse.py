@@ -81,6 +81,21 @@ def test_submatrix_gather_equals_scipy_indexing(two_points):
         ref.sort_indices()
         assert np.array_equal(B.indptr, ref.indptr) and np.array_equal(B.indices, ref.indices)
         assert np.array_equal(B.data, ref.data)
+    # two submatrices of the same rows sharing the rows' entries (A_II and A_IΓ): the second takes
+    # the first one's, and each still equals scipy's indexing, for every new pattern
+    shared: dict = {}
+    other = np.setdiff1d(np.arange(n), cols)
+    g1, g2 = Submatrix(rows, cols, n, shared), Submatrix(rows, other, n, shared)
+    for M in (A, H2, A):
+        M = sp.csr_matrix(M)
+        M.sort_indices()
+        B1, B2 = g1(M), g2(M)
+        for B, c in ((B1, cols), (B2, other)):
+            ref = M[rows][:, c]
+            ref.sort_indices()
+            assert np.array_equal(B.indptr, ref.indptr) and np.array_equal(B.indices, ref.indices)
+            assert np.array_equal(B.data, ref.data)
+    assert not shared   # taken by the second
 
 
 @pytest.mark.parametrize("backend", ["superlu"] + (["cholmod"] if SPARSE_BACKEND == "cholmod" else []))
