@@ -185,7 +185,9 @@ def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
 
 
 def _column_dots(U: np.ndarray, V: np.ndarray) -> np.ndarray:
-    """Re(u_jᴴ v_j) for every column j (real arrays: no conjugated copy)."""
+    """Re(u_jᴴ v_j) for every column j (real arrays and single columns: no conjugated copy)."""
+    if U.shape[1] == 1:
+        return np.array([np.vdot(U[:, 0], V[:, 0]).real])
     if np.iscomplexobj(U):
         return np.einsum("ij,ij->j", U.conj(), V).real
     return np.einsum("ij,ij->j", U, V)
@@ -213,8 +215,10 @@ def pcg_columns(A, B, M=None, tol: float = 1e-8, maxiter: int | None = None) -> 
     for it in range(1, maxiter + 1):
         if not len(active):
             break
-        Z = _apply(M, R[:, active])
-        g_new = _column_dots(R[:, active], Z)
+        every = len(active) == k   # all columns still running: views, not copies
+        R_a = R if every else R[:, active]
+        Z = _apply(M, R_a)
+        g_new = _column_dots(R_a, Z)
         if P is None:
             P = Z
         else:
@@ -225,9 +229,13 @@ def pcg_columns(A, B, M=None, tol: float = 1e-8, maxiter: int | None = None) -> 
         gamma = g_new
         Q = A @ P
         alpha = gamma / _column_dots(P, Q)
-        X[:, active] += P * alpha
-        R[:, active] -= Q * alpha
-        rel = np.linalg.norm(R[:, active], axis=0) / bnorm[active]
+        if every:
+            X += P * alpha
+            R -= Q * alpha
+        else:
+            X[:, active] += P * alpha
+            R[:, active] -= Q * alpha
+        rel = np.linalg.norm(R if every else R[:, active], axis=0) / bnorm[active]
         for c, a, r in zip(active, alpha, rel):
             alphas[c].append(float(a))
             residuals[c].append(float(r))
