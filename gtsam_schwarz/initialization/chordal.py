@@ -595,13 +595,16 @@ def _direct_solve(A, B):
 # the rotations composed from each aggregate's seed (rotation system), constants (translations)),
 # "tree" (exact spanning-tree solve), "jacobi" or "none"; solver "direct": sparse Cholesky (CHOLMOD
 # if installed, else SuperLU). translation_solver: the translations' ("cg" or "direct"; None: as
-# solver); isotropic translation information makes them one scalar Laplacian. rotation "lago" (2D only):
+# solver); isotropic translation information makes them one scalar Laplacian. translation_tol: CG's
+# tolerance for the translations (None: tol). 2D by CG without overlap: both systems with one complex
+# unknown per pose, deflated CG on the aggregates (:class:`_AggregateSchwarz`). rotation "lago" (2D only):
 # angles with 2π wraps regularized along the BFS spanning tree instead of the chordal relaxation.
 # blas_threads: BLAS threads while solving (None: leave the process setting), as the optimizer's.
 def chordal_initialization(n: int, edges, R_meas, t_meas, information=None, anchor=0,
                            anchor_pose=None, solver: str = "cg", *, translation_solver: str | None = None,
                            preconditioner: str = "schwarz",
-                           rotation: str = "chordal", tol: float = 1e-10, maxiter: int | None = None,
+                           rotation: str = "chordal", tol: float = 1e-10, translation_tol: float | None = None,
+                           maxiter: int | None = None,
                            translation_weights: str = "information", aggregate_size: int = 16,
                            overlap: int = 1, seed: int = 0, blas_threads: int | None = 1) -> ChordalResult:
     """Anchored R = proj_SO(d)(argmin_X Σ w_ij‖X_j − X_i R_ij‖_F²), then
@@ -656,7 +659,8 @@ def _blas_controller():
 
 
 def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver, translation_solver, preconditioner,
-             rotation, tol, maxiter, translation_weights, aggregate_size, overlap, seed, blas_threads):
+             rotation, tol, translation_tol, maxiter, translation_weights, aggregate_size, overlap, seed,
+             blas_threads):
     """Body of :func:`chordal_initialization` (BLAS threads already limited)."""
     t0 = time.perf_counter()
     if solver not in SOLVERS:
@@ -752,7 +756,7 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
 
     aggregates = []
 
-    def complex_solve(blocks, rhs, x_fixed, basis):
+    def complex_solve(blocks, rhs, x_fixed, basis, tol=tol):
         """CG on the one-unknown complex system, the free nodes' coarse values ``basis``."""
         A, b = system.matrix(blocks, rhs, x_fixed)
         if not aggregates:
@@ -769,7 +773,7 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
         A_T, _ = _normal_equations(n, red.d, i[tree_eid], j[tree_eid], S[tree_eid], W[tree_eid])
         return _tree_solver(red, red.restrict(A_T)[0], tree_order)
 
-    def solve(red, A, b, x_fixed, S, W, basis=None, cg=cg):
+    def solve(red, A, b, x_fixed, S, W, basis=None, cg=cg, tol=tol):
         """Anchored solve for each column of b; returns the full x and the CG infos."""
         shape = (red.free.size,) + x_fixed.shape[1:]
         if red.free.size == 0:
@@ -858,6 +862,7 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
     t2 = time.perf_counter()
 
     # ---- translations ---------------------------------------------------------------------
+    tol_t = tol if translation_tol is None else float(translation_tol)
     # the BetweenFactor translation error lives in the frame R_i R_ij: W = (R_i R_ij) Ω_tt (R_i R_ij)ᵀ
     c = np.einsum("kab,kb->ka", rotations[i], t_meas)
     if _isotropic(W_loc):  # W = R (wI) Rᵀ = wI: the coordinates decouple, one scalar Laplacian, d right-hand sides
@@ -868,12 +873,12 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
         if cg_translations and complex_cg:   # x + iy on the rotations' pattern; coarse values: constants
             wz = w.astype(complex)
             z, infos = complex_solve((wz, wz, -wz, -wz), (b[:, 0] + 1j * b[:, 1])[:, None],
-                                     (p_fix[:, 0] + 1j * p_fix[:, 1])[:, None], np.ones(red_1.free_nodes.size))
+                                     (p_fix[:, 0] + 1j * p_fix[:, 1])[:, None], np.ones(red_1.free_nodes.size), tol_t)
             P = np.stack([z.real, z.imag], -1)
         elif cg_translations:
             one = np.ones((m, 1, 1))
             A, _ = _normal_equations(n, 1, i, j, one, w[:, None, None])
-            P, infos = solve(red_1, A, b, p_fix, one, w[:, None, None], cg=True)
+            P, infos = solve(red_1, A, b, p_fix, one, w[:, None, None], cg=True, tol=tol_t)
         else:
             if not scalar:  # 3D: a one-unknown pattern of its own for the translations (rotations need 3×3
                 system = _BlockSystem(n, 1, i, j, anchors)  # blocks): 1/27 of the block system's flops
@@ -899,7 +904,7 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
         else:
             S = np.broadcast_to(np.eye(d), (m, d, d))
             A, b = _normal_equations(n, d, i, j, S, W, c)
-            P, infos = solve(red_d, A, b, p_fix.reshape(-1), S, W, cg=True)
+            P, infos = solve(red_d, A, b, p_fix.reshape(-1), S, W, cg=True, tol=tol_t)
     positions = P.reshape(n, d)
     t3 = time.perf_counter()
     info["translation_iterations"] = [c_.iterations for c_ in infos]

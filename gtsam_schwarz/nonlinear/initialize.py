@@ -44,8 +44,9 @@ CYCLES_PER_POSE_2D = 0.25
 # 5e-12 (torus3D, forced Schwarz); the start costs 1.13 s instead of 1.56 s at 32x32x32
 CG_TOL = 1e-2
 # 2D lawnmowers from a start solved to 1e-2 end 1.4e-7 and 1.3e-7 (600x600, 1000x1000) above the exact start's LM
-# error; from 1e-3 below it (1076.122861 and 2993.952033 against 1076.122895 and 2993.952050), for
-# 15 + 29 CG instead of 8 + 20 at 360 000 poses (+0.4 s)
+# error; with the rotations solved to 1e-3 below it (1076.122861 and 2993.952033 against 1076.122895 and
+# 2993.952050; 15 rotation CG instead of 8 at 360 000 poses), and so with the positions to CG_TOL
+# (1076.122858 and 2993.952028; 20 position CG instead of 29, 1.73 against 2.10 s at 360 000 poses)
 CG_TOL_2D = 1e-3
 
 
@@ -89,7 +90,7 @@ def chordal_state(linearizer, state, solver: str = "auto"):
         solver = "cg" if graph["n"] >= CG_MIN_POSES else "direct"
     elif solver in ("auto", "cg-3d"):
         solver, why = rotation_solver(graph["n"], np.asarray(b["i"]), np.asarray(b["j"]), d)
-    options = dict(overlap=0, tol=CG_TOL if d == 3 else CG_TOL_2D) if solver == "cg" else {}
+    options = dict(overlap=0, tol=CG_TOL if d == 3 else CG_TOL_2D, translation_tol=CG_TOL) if solver == "cg" else {}
     result = chordal_initialization(graph["n"], np.column_stack([b["i"], b["j"]]), b["R"], b["t"], b["information"],
                                     anchor=anchor, anchor_pose=anchor_pose, solver=solver, **options)
     if anchor_pose is None:  # no prior: keep the first pose where the given values have it

@@ -455,6 +455,9 @@ def test_2d_cg_without_overlap_runs_in_complex_numbers():
     loose = chordal_initialization(300, e, Rij, tij, w, tol=1e-3, overlap=0)
     assert sum(loose.info["rotation_iterations"]) < sum(iso.info["rotation_iterations"])
     assert np.abs(loose.positions - iso.positions).max() > 1e-9   # the tolerance is what CG was given
+    positions_loose = chordal_initialization(300, e, Rij, tij, w, tol=1e-13, translation_tol=1e-3, overlap=0)
+    np.testing.assert_array_equal(positions_loose.rotations, iso.rotations)   # the rotations keep tol
+    assert sum(positions_loose.info["translation_iterations"]) < sum(iso.info["translation_iterations"])
 
     Rt, pt = trajectory(200, 2, rng)
     et, Rijt, tijt = pose_graph(Rt, pt, 40, rng)
