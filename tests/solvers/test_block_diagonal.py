@@ -85,3 +85,37 @@ def test_mixed_block_sizes_and_the_positions_gather():
     gathered = _BlockDiagonalGather(sets)(H)
     assert np.array_equal(gathered.data, P.data + 1) and np.array_equal(gathered.indices, by_dofs.indices)
     assert np.array_equal(gathered.data, by_dofs.data)
+
+
+def test_chunks_share_the_vertex_level_while_finding_positions(monkeypatch):
+    """A solver of several chunks finds every chunk's block diagonal from one vertex-level pattern of A
+    (kept only during its update): each chunk's matrix equals the extraction of its subsets, and
+    the solver applies the inverse of the whole block diagonal."""
+    import importlib
+
+    from gtsam_schwarz.solvers import cost
+    from gtsam_schwarz.solvers.block_diagonal import BlockDiagonalSolver
+
+    bdmod = importlib.import_module("gtsam_schwarz.solvers.block_diagonal")
+
+    prob = lawnmower(12, 12, sigma=0.01, seed=0)
+    lin = NativeLinearizer.from_arrays(**prob.arrays)
+    H = sp.csr_matrix(lin.linearize(lin.initial_state()).H)
+    H.sort_indices()
+    dec = decompose(GraphStructure.from_matrix(H, lin.offsets), 8, "metis", 1)
+    sets = dec.index_sets(True)
+    monkeypatch.setattr(BlockDiagonalSolver, "CHUNK_ENTRIES", H.nnz // 4)
+    calls = []
+    pattern = cost.vertex_pattern
+    monkeypatch.setattr(cost, "vertex_pattern", lambda *a: (calls.append(1), pattern(*a))[1])
+    solver = BlockDiagonalSolver(sets, H)
+    assert len(solver._chunks) >= 3 and len(calls) == 1   # one vertex pattern for every chunk
+    assert not bdmod._VERTEX_LEVEL   # dropped after the update
+    x = np.random.default_rng(1).normal(size=H.shape[0])
+    B = block_diagonal(H, sets).toarray()
+    xl = x[sets.indices]
+    np.testing.assert_allclose(solver.matvec(x), np.bincount(sets.indices, np.linalg.solve(B, xl), minlength=H.shape[0]),
+                               rtol=1e-8, atol=1e-10)
+    for lo, hi, gather, _ in solver._chunks:
+        part = block_diagonal(H, gather.sets)
+        assert np.array_equal(gather(H).toarray(), part.toarray()) and part.shape[0] == hi - lo
