@@ -15,7 +15,7 @@ import scipy.sparse as sp
 from ..dd.decomposition import Decomposition
 from ..dd.interface import Interface
 from ..solvers import SparseCholesky, Submatrix, factorize
-from ..solvers.gather import pattern_of
+from ..solvers.gather import pattern_of, sharing_vertex_level
 from ..util.sparse import row_block, row_entries
 
 
@@ -93,11 +93,12 @@ def _rows_to_csr(X: np.ndarray, k_row: np.ndarray, out: np.ndarray, rows_per_blo
 class _Group:
     """The interior dofs of some subdomains, their A_II and A_IΓ gathers and A_II's factorization."""
 
-    def __init__(self, interior: np.ndarray, sub: np.ndarray, gamma: np.ndarray, n: int):
+    def __init__(self, interior: np.ndarray, sub: np.ndarray, gamma: np.ndarray, n: int,
+                 offsets: np.ndarray | None = None):
         self.interior, self.sub = interior, sub
         self._shared: dict = {}   # the interior rows' entries, found once for both gathers
-        self.A_II = Submatrix(interior, interior, n, self._shared)
-        self.A_IG = Submatrix(interior, gamma, n, self._shared)
+        self.A_II = Submatrix(interior, interior, n, self._shared, offsets)
+        self.A_IG = Submatrix(interior, gamma, n, self._shared, offsets)
         self.factor = None
         self._released = None  # A's pattern when the factor's numbers and the gathers were dropped
 
@@ -155,6 +156,7 @@ class HarmonicExtension:
     def __init__(self, decomposition: Decomposition, interface: Interface, block_columns: int | None = None,
                  max_groups: int = 3):
         offsets = decomposition.structure.offsets
+        self.offsets = offsets
         self.n = decomposition.structure.n_dofs
         owner_dof = np.repeat(interface.interior_subdomain, np.diff(offsets))  # −1 on Γ
         self.interior = np.flatnonzero(owner_dof >= 0)
@@ -196,7 +198,7 @@ class HarmonicExtension:
         self.groups, plans, indices, k_rows = [], [], [], []
         for g in np.unique(group_of_sub[self.sub]):  # at most max_groups
             rows_g = np.flatnonzero(group_of_sub[self.sub] == g)
-            group = _Group(self.interior[rows_g], self.sub[rows_g], self.gamma, self.n)
+            group = _Group(self.interior[rows_g], self.sub[rows_g], self.gamma, self.n, self.offsets)
             k_row = counts[group.sub]
             K, nI = int(k_row.max()), len(rows_g)
             prefix = np.arange(K)[None, :] < k_row[:, None]
@@ -315,11 +317,12 @@ class HarmonicExtension:
         del recycle
         Phi_G = sp.csr_matrix((gamma_vals[plan["g_order"]], plan["indices"][plan["nnz_I"]:], plan["ptr_G"]),
                               shape=(len(self.gamma), nc))
-        for group, gplan in zip(self.groups, plan["groups"]):
-            group.refactor(A)
-            self._extend(group, group.A_IG(A), Phi_G, plan, gplan, data)
-            if not self.keep_factors:  # the next refactor finds the gathers' positions again
-                group.release()
+        with sharing_vertex_level():   # the groups' gathers read A's vertex level once
+            for group, gplan in zip(self.groups, plan["groups"]):
+                group.refactor(A)
+                self._extend(group, group.A_IG(A), Phi_G, plan, gplan, data)
+                if not self.keep_factors:  # the next refactor finds the gathers' positions again
+                    group.release()
         data[plan["nnz_I"]:] = gamma_vals[plan["g_order"]]
         local = sp.csr_matrix((data, plan["indices"], plan["indptr"]), shape=(n, nc))
         # (AΦ)_I = A_II Φ_I + A_IΓ Φ_Γ = 0 for the harmonic extension, so Φᵀ A Φ = Φ_Γᵀ (AΦ)_Γ:

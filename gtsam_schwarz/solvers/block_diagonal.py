@@ -12,7 +12,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .base import SingularLocalMatrixError
-from .gather import Gather
+from .gather import Gather, block_positions, vertex_level, sharing_vertex_level
 from .sparse import SparseCholesky
 
 
@@ -54,37 +54,6 @@ def block_diagonal_positions(A: sp.csr_matrix, sets) -> sp.csr_matrix | None:
     return _block_diagonal_by_vertices(sp.csr_matrix(A), sets, positions=True)
 
 
-_VERTEX_LEVEL: list = []   # [(key, A's pattern arrays, result)] while a solver's chunks find their positions
-
-
-def _vertex_level(A: sp.csr_matrix, offsets: np.ndarray):
-    """A's vertex pattern V (its numbers: 1 + each vertex entry's number) and where each block starts
-    in its dof rows, or None when A is not made of whole blocks. Kept while
-    :meth:`BlockDiagonalSolver.update` finds its chunks' positions: every chunk reads the same A
-    (1M 2D poses, 7 chunks: ~0.7 s each for this part)."""
-    from .cost import vertex_pattern
-
-    key = (A.indptr.ctypes.data, A.indices.ctypes.data, A.indptr.size, A.indices.size, offsets.ctypes.data, offsets.size)
-    if _VERTEX_LEVEL and _VERTEX_LEVEL[0][0] == key:
-        return _VERTEX_LEVEL[0][2]
-    dims = np.diff(offsets)
-    nv = len(dims)
-    V = vertex_pattern(A, offsets)
-    V.sort_indices()
-    vrow = np.repeat(np.arange(nv), np.diff(V.indptr))
-    result = None
-    if int(np.sum(dims[vrow] * dims[V.indices])) == A.nnz:
-        # where block (u, v) starts in each dof row of u: the widths of the blocks before it in the row
-        width = dims[V.indices]
-        before = np.cumsum(width) - width
-        col_start = before - before[V.indptr[vrow]]
-        V.data = np.arange(1, V.nnz + 1, dtype=float)  # 1 + the vertex entry's number
-        result = (V, col_start)
-    if _VERTEX_LEVEL:   # a solver's update is finding positions: keep it for its next chunk
-        _VERTEX_LEVEL[:] = [(key, (A.indptr, A.indices, offsets), result)]
-    return result
-
-
 def _block_diagonal_by_vertices(A: sp.csr_matrix, sets, positions: bool = False) -> sp.csr_matrix | None:
     """:func:`block_diagonal` for sets of whole vertices and a matrix made of whole dense vertex
     blocks (H is): the product R A Rᵀ is formed on the vertex pattern (a 9th or 36th of the entries
@@ -94,7 +63,7 @@ def _block_diagonal_by_vertices(A: sp.csr_matrix, sets, positions: bool = False)
     offsets = sets.offsets
     dims = np.diff(offsets)
     nv = len(dims)
-    level = _vertex_level(A, offsets)
+    level = vertex_level(A, offsets)
     if level is None:
         return None  # not whole blocks: the dof-level product
     V, col_start = level
@@ -103,7 +72,7 @@ def _block_diagonal_by_vertices(A: sp.csr_matrix, sets, positions: bool = False)
     entry = Bv.data.astype(np.int64) - 1
     vert = sets.vertices
     if nv and np.all(dims == dims[0]):   # one block size: B is the BSR matrix of A's blocks (u, v) kept in Bv
-        P = _uniform_positions(A, Bv, entry, vert, offsets, col_start, int(dims[0]))
+        P = block_positions(A, Bv, entry, vert, offsets, col_start, int(dims[0]))
         if positions:
             return P
         B = sp.csr_matrix((A.data[P.data], P.indices, P.indptr), shape=P.shape, copy=False)
@@ -142,24 +111,6 @@ def _block_diagonal_by_vertices(A: sp.csr_matrix, sets, positions: bool = False)
     B = sp.csr_matrix((data, cols, indptr.astype(itype)), shape=(m, m), copy=False)
     B.has_sorted_indices = True
     return B
-
-
-def _uniform_positions(A: sp.csr_matrix, Bv: sp.csr_matrix, entry: np.ndarray, vert: np.ndarray,
-                       offsets: np.ndarray, col_start: np.ndarray, d: int) -> sp.csr_matrix:
-    """For d×d blocks everywhere: entry (a, b) of the kept block (u, v) sits in A's dof row
-    offsets[u] + a at col_start + b; these positions form a BSR matrix on Bv's pattern, turned into
-    CSR by scipy (three passes over the entries instead of seven)."""
-    m = Bv.shape[0] * d
-    itype = np.int32 if max(A.nnz, Bv.nnz * d * d, m) < 2**31 - 1 else np.int64
-    u = vert[np.repeat(np.arange(Bv.shape[0]), np.diff(Bv.indptr))]   # the vertex of every kept block's row
-    first = (A.indptr[offsets[u][:, None] + np.arange(d)] + col_start[entry][:, None]).astype(itype)   # (nb, d)
-    src = first[:, :, None] + np.arange(d, dtype=itype)   # (nb, d, d): positions in A.data
-    del first
-    P = sp.bsr_matrix((src, Bv.indices.astype(itype), Bv.indptr.astype(itype)), shape=(m, m), blocksize=(d, d))
-    del src
-    P = P.tocsr()
-    P.has_sorted_indices = True
-    return P
 
 
 class _BlockDiagonalGather(Gather):
@@ -232,8 +183,7 @@ class BlockDiagonalSolver:
             return self
         if self._chunks is None:
             self._chunks = self._plan_chunks(A)
-        _VERTEX_LEVEL[:] = [(None, None, None)]   # the chunks share A's vertex level while finding positions
-        try:
+        with sharing_vertex_level():   # the chunks share A's vertex level while finding positions
             for chunk in self._chunks:
                 _, _, gather, factor = chunk
                 pattern = gather.pattern
@@ -244,8 +194,6 @@ class BlockDiagonalSolver:
                 else:
                     factor.refactor(B)
                 del B
-        finally:
-            _VERTEX_LEVEL.clear()
         return self
 
     def release(self) -> None:

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import scipy.sparse as sp
 
-from ..util.sparse import row_entries
+from ..util.sparse import row_entries, vertex_pattern
 
 
 class SparsityPattern:
@@ -90,9 +92,13 @@ class Submatrix(Gather):
     the rows' index ranges and a column map, without a position matrix of all of A (3D 45³: the
     interior blocks' positions took 2.6 s per rebuild in the low-memory mode, which drops them)."""
 
-    def __init__(self, rows: np.ndarray, cols: np.ndarray, n: int, shared: dict | None = None):
+    def __init__(self, rows: np.ndarray, cols: np.ndarray, n: int, shared: dict | None = None,
+                 offsets: np.ndarray | None = None):
         super().__init__(None)
         self.rows = np.asarray(rows)
+        # rows and columns of whole vertices of one block size (offsets given): positions by blocks
+        self.vertex_sets = _whole_vertices(self.rows, np.asarray(cols), offsets)
+        self.offsets = offsets
         # submatrices of the same rows (A_II and A_IΓ) pass one dict: the rows' entries found for the
         # first are taken by the next instead of found again (600x600 2D poses: 0.4 s per build)
         self.shared = shared
@@ -101,6 +107,10 @@ class Submatrix(Gather):
         self.n_cols = len(cols)
 
     def _positions(self, A: sp.csr_matrix):
+        if self.vertex_sets is not None:
+            P = submatrix_positions(A, *self.vertex_sets, self.offsets, int(self.offsets[1] - self.offsets[0]))
+            if P is not None:
+                return P.data, P.indices, P.indptr, P.shape
         itype = np.int32 if A.nnz < 2**31 - 1 else np.int64
         held = self.shared
         # the same pattern arrays (scipy's csr_matrix(A) views A's indices through a new array object)
@@ -122,3 +132,95 @@ class Submatrix(Gather):
         np.cumsum(keep, out=kept[1:])
         indptr = kept[ranges].astype(itype)
         return at[keep], local[keep], indptr, (len(self.rows), self.n_cols)
+
+
+def _whole_vertices(rows: np.ndarray, cols: np.ndarray, offsets: np.ndarray | None):
+    """(row vertices, column vertices) where ``rows`` and ``cols`` are the dofs of whole vertices in
+    order and every vertex has the same number of dofs; else None."""
+    if offsets is None or len(offsets) < 2:
+        return None
+    dims = np.diff(offsets)
+    d = int(dims[0])
+    if d < 2 or not np.all(dims == d) or len(rows) % d or len(cols) % d:
+        return None
+    vertex = []
+    for dofs in (rows, cols):
+        v = dofs[::d] // d
+        if not np.array_equal(dofs, (v[:, None] * d + np.arange(d)).ravel()):
+            return None
+        vertex.append(v)
+    return vertex[0], vertex[1]
+
+
+# -- positions by vertex blocks (a matrix made of whole d×d blocks, as H) ------------------------
+
+_VERTEX_LEVEL: list = []   # [(key, A's pattern arrays, result)] within sharing_vertex_level()
+
+
+@contextlib.contextmanager
+def sharing_vertex_level():
+    """Within: extractions from the same A share its vertex level (:func:`vertex_level`); dropped after."""
+    _VERTEX_LEVEL[:] = [(None, None, None)]
+    try:
+        yield
+    finally:
+        _VERTEX_LEVEL.clear()
+
+
+def vertex_level(A: sp.csr_matrix, offsets: np.ndarray):
+    """A's vertex pattern V (its numbers: 1 + each vertex entry's number) and where each block starts
+    in its dof rows, or None when A is not made of whole blocks. Kept within
+    :func:`sharing_vertex_level`: the one-level chunks and the extension's groups read the same A
+    (1M 2D poses, 7 chunks: ~0.7 s each for this part)."""
+    key = (A.indptr.ctypes.data, A.indices.ctypes.data, A.indptr.size, A.indices.size, offsets.ctypes.data, offsets.size)
+    if _VERTEX_LEVEL and _VERTEX_LEVEL[0][0] == key:
+        return _VERTEX_LEVEL[0][2]
+    dims = np.diff(offsets)
+    nv = len(dims)
+    V = vertex_pattern(A, offsets)
+    V.sort_indices()
+    vrow = np.repeat(np.arange(nv), np.diff(V.indptr))
+    result = None
+    if int(np.sum(dims[vrow] * dims[V.indices])) == A.nnz:
+        # where block (u, v) starts in each dof row of u: the widths of the blocks before it in the row
+        width = dims[V.indices]
+        before = np.cumsum(width) - width
+        col_start = before - before[V.indptr[vrow]]
+        V.data = np.arange(1, V.nnz + 1, dtype=float)  # 1 + the vertex entry's number
+        result = (V, col_start)
+    if _VERTEX_LEVEL:   # a solver's update is finding positions: keep it for its next chunk
+        _VERTEX_LEVEL[:] = [(key, (A.indptr, A.indices, offsets), result)]
+    return result
+
+
+def submatrix_positions(A: sp.csr_matrix, row_vertices: np.ndarray, col_vertices: np.ndarray,
+                        offsets: np.ndarray, d: int) -> sp.csr_matrix | None:
+    """Positions in A.data of A[rows][:, cols] for rows and columns made of whole vertices of one block
+    size d (in the order of the vertices given), as a CSR pattern; None where A is not made of whole
+    blocks. The vertex-level submatrix is expanded as a BSR pattern (1M 2D poses, the extension's
+    interior blocks: ~7 passes over 25M entries found them before)."""
+    level = vertex_level(A, offsets)
+    if level is None:
+        return None
+    V, col_start = level
+    Vs = sp.csr_matrix(V[row_vertices][:, col_vertices])
+    Vs.sort_indices()
+    return block_positions(A, Vs, Vs.data.astype(np.int64) - 1, row_vertices, offsets, col_start, d)
+
+
+def block_positions(A: sp.csr_matrix, Bv: sp.csr_matrix, entry: np.ndarray, vert: np.ndarray,
+                       offsets: np.ndarray, col_start: np.ndarray, d: int) -> sp.csr_matrix:
+    """For d×d blocks everywhere: entry (a, b) of the kept block (u, v) sits in A's dof row
+    offsets[u] + a at col_start + b; these positions form a BSR matrix on Bv's pattern, turned into
+    CSR by scipy (three passes over the entries instead of seven)."""
+    m, mc = Bv.shape[0] * d, Bv.shape[1] * d
+    itype = np.int32 if max(A.nnz, Bv.nnz * d * d, m, mc) < 2**31 - 1 else np.int64
+    u = vert[np.repeat(np.arange(Bv.shape[0]), np.diff(Bv.indptr))]   # the vertex of every kept block's row
+    first = (A.indptr[offsets[u][:, None] + np.arange(d)] + col_start[entry][:, None]).astype(itype)   # (nb, d)
+    src = first[:, :, None] + np.arange(d, dtype=itype)   # (nb, d, d): positions in A.data
+    del first
+    P = sp.bsr_matrix((src, Bv.indices.astype(itype), Bv.indptr.astype(itype)), shape=(m, mc), blocksize=(d, d))
+    del src
+    P = P.tocsr()
+    P.has_sorted_indices = True
+    return P

@@ -98,6 +98,39 @@ def test_submatrix_gather_equals_scipy_indexing(two_points):
     assert not shared   # taken by the second
 
 
+
+def test_submatrix_of_whole_vertices_by_blocks():
+    """Rows and columns of whole poses (offsets given) take their positions from the vertex-level
+    submatrix expanded in blocks: the same entries, pattern and order as scipy's indexing; sets that
+    split a pose fall back to the entry-level positions."""
+    from gtsam_schwarz.linearization.native import NativeLinearizer
+    from gtsam_schwarz.problems import lawnmower
+    from gtsam_schwarz.solvers.gather import sharing_vertex_level, submatrix_positions
+
+    lin = NativeLinearizer.from_arrays(**lawnmower(10, 10, sigma=0.01, seed=0).arrays)
+    H1 = sp.csr_matrix(lin.linearize(lin.initial_state()).H)   # whole 3×3 blocks
+    H1.sort_indices()
+    n = H1.shape[0]
+    d = 3
+    offsets = np.arange(0, n + 1, d)
+    rng = np.random.default_rng(2)
+    rv = np.sort(rng.choice(n // d, n // d // 3, replace=False))
+    cv = np.setdiff1d(np.arange(n // d), rv[::2])
+    rows, cols = (rv[:, None] * d + np.arange(d)).ravel(), (cv[:, None] * d + np.arange(d)).ravel()
+    for r, c, whole in ((rows, cols, True), (rows, cols[1:], False)):
+        g = Submatrix(r, c, n, offsets=offsets)
+        assert (g.vertex_sets is not None) == whole
+        with sharing_vertex_level():
+            B = g(H1)
+            by_blocks = submatrix_positions(H1, *g.vertex_sets, offsets, d) if whole else None
+        if whole:   # the block path answered (H is made of whole 3×3 blocks)
+            assert by_blocks is not None and np.array_equal(by_blocks.indices, B.indices)
+        ref = H1[r][:, c]
+        ref.sort_indices()
+        assert np.array_equal(B.indptr, ref.indptr) and np.array_equal(B.indices, ref.indices)
+        assert np.array_equal(B.data, ref.data)
+
+
 @pytest.mark.parametrize("backend", ["superlu"] + (["cholmod"] if SPARSE_BACKEND == "cholmod" else []))
 def test_sparse_cholesky_refactor_matches_direct_solve(two_points, backend):
     _, H1, H2 = two_points

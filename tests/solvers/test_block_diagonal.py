@@ -93,10 +93,9 @@ def test_chunks_share_the_vertex_level_while_finding_positions(monkeypatch):
     the solver applies the inverse of the whole block diagonal."""
     import importlib
 
-    from gtsam_schwarz.solvers import cost
     from gtsam_schwarz.solvers.block_diagonal import BlockDiagonalSolver
 
-    bdmod = importlib.import_module("gtsam_schwarz.solvers.block_diagonal")
+    gather = importlib.import_module("gtsam_schwarz.solvers.gather")
 
     prob = lawnmower(12, 12, sigma=0.01, seed=0)
     lin = NativeLinearizer.from_arrays(**prob.arrays)
@@ -106,11 +105,11 @@ def test_chunks_share_the_vertex_level_while_finding_positions(monkeypatch):
     sets = dec.index_sets(True)
     monkeypatch.setattr(BlockDiagonalSolver, "CHUNK_ENTRIES", H.nnz // 4)
     calls = []
-    pattern = cost.vertex_pattern
-    monkeypatch.setattr(cost, "vertex_pattern", lambda *a: (calls.append(1), pattern(*a))[1])
+    pattern = gather.vertex_pattern
+    monkeypatch.setattr(gather, "vertex_pattern", lambda *a: (calls.append(1), pattern(*a))[1])
     solver = BlockDiagonalSolver(sets, H)
     assert len(solver._chunks) >= 3 and len(calls) == 1   # one vertex pattern for every chunk
-    assert not bdmod._VERTEX_LEVEL   # dropped after the update
+    assert not gather._VERTEX_LEVEL   # dropped after the update
     x = np.random.default_rng(1).normal(size=H.shape[0])
     B = block_diagonal(H, sets).toarray()
     xl = x[sets.indices]
