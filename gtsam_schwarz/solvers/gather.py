@@ -99,6 +99,7 @@ class Submatrix(Gather):
         # rows and columns of whole vertices of one block size (offsets given): positions by blocks
         self.vertex_sets = _whole_vertices(self.rows, np.asarray(cols), offsets)
         self.offsets = offsets
+        self.block = int(offsets[1] - offsets[0]) if self.vertex_sets is not None else 1   # dofs per vertex
         # submatrices of the same rows (A_II and A_IΓ) pass one dict: the rows' entries found for the
         # first are taken by the next instead of found again (600x600 2D poses: 0.4 s per build)
         self.shared = shared
@@ -108,7 +109,7 @@ class Submatrix(Gather):
 
     def _positions(self, A: sp.csr_matrix):
         if self.vertex_sets is not None:
-            P = submatrix_positions(A, *self.vertex_sets, self.offsets, int(self.offsets[1] - self.offsets[0]))
+            P = submatrix_positions(A, *self.vertex_sets, self.offsets, self.block)
             if P is not None:
                 return P.data, P.indices, P.indptr, P.shape
         itype = np.int32 if A.nnz < 2**31 - 1 else np.int64
