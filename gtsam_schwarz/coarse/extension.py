@@ -13,6 +13,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..dd.decomposition import Decomposition
+from ..dd.index_sets import vertex_dofs
 from ..dd.interface import Interface
 from ..solvers import SparseCholesky, Submatrix, factorize
 from ..solvers.gather import pattern_of, sharing_vertex_level
@@ -94,8 +95,9 @@ class _Group:
     """The interior dofs of some subdomains, their A_II and A_IΓ gathers and A_II's factorization."""
 
     def __init__(self, interior: np.ndarray, sub: np.ndarray, gamma: np.ndarray, n: int,
-                 offsets: np.ndarray | None = None):
+                 offsets: np.ndarray | None = None, ordered: bool = False):
         self.interior, self.sub = interior, sub
+        self.ordering = "natural" if ordered else None  # interior rows already in a fill-reducing order
         self._shared: dict = {}   # the interior rows' entries, found once for both gathers
         self.A_II = Submatrix(interior, interior, n, self._shared, offsets)
         self.A_IG = Submatrix(interior, gamma, n, self._shared, offsets)
@@ -110,7 +112,7 @@ class _Group:
         if isinstance(self.factor, SparseCholesky) and same:
             self.factor.refactor(A_II)  # same pattern: numbers only (the analysis is kept by release)
         else:
-            self.factor = factorize(A_II, "the interior matrix A_II")
+            self.factor = factorize(A_II, "the interior matrix A_II", self.ordering)
 
     def release(self) -> None:
         """Drop the factor's numbers and the gathers' positions; keep the symbolic analysis."""
@@ -150,16 +152,24 @@ class HarmonicExtension:
     subdomain set contains i. Subdomains are solved in up to ``max_groups`` groups of similar K_i
     (:func:`column_groups`), each group one factorization of its block-diagonal A_II and one solve
     with its largest K_i columns, in blocks of at most ``block_columns`` columns (None: all at once)
-    to bound the memory.
+    to bound the memory. ``vertex_order``: (vertices, their subdomains), every subdomain's vertices
+    in a fill-reducing order (the one-level blocks'); the interior dofs then follow it, and A_II is
+    factorized in that order (the order it induces on a subset has no more fill than on the whole).
     """
 
     def __init__(self, decomposition: Decomposition, interface: Interface, block_columns: int | None = None,
-                 max_groups: int = 3):
+                 max_groups: int = 3, vertex_order: tuple[np.ndarray, np.ndarray] | None = None):
         offsets = decomposition.structure.offsets
         self.offsets = offsets
         self.n = decomposition.structure.n_dofs
         owner_dof = np.repeat(interface.interior_subdomain, np.diff(offsets))  # −1 on Γ
         self.interior = np.flatnonzero(owner_dof >= 0)
+        self.ordered = False
+        if vertex_order is not None:  # each interior vertex where it lies in its own subdomain's order
+            vertices, subdomain = vertex_order
+            own = vertices[interface.interior_subdomain[vertices] == subdomain]
+            if len(own) == np.count_nonzero(interface.interior_subdomain >= 0):
+                self.interior, self.ordered = vertex_dofs(own, offsets), True
         self.gamma = np.flatnonzero(owner_dof < 0)
         self.sub = owner_dof[self.interior]
         self.block_columns, self.max_groups = block_columns, max_groups
@@ -198,7 +208,7 @@ class HarmonicExtension:
         self.groups, plans, indices, k_rows = [], [], [], []
         for g in np.unique(group_of_sub[self.sub]):  # at most max_groups
             rows_g = np.flatnonzero(group_of_sub[self.sub] == g)
-            group = _Group(self.interior[rows_g], self.sub[rows_g], self.gamma, self.n, self.offsets)
+            group = _Group(self.interior[rows_g], self.sub[rows_g], self.gamma, self.n, self.offsets, self.ordered)
             k_row = counts[group.sub]
             K, nI = int(k_row.max()), len(rows_g)
             prefix = np.arange(K)[None, :] < k_row[:, None]

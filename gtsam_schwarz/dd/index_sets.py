@@ -7,14 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-
-def vertex_dofs(vertices: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """Concatenated dof indices of ``vertices`` (each vertex v owns offsets[v]:offsets[v+1])."""
-    vertices = np.asarray(vertices, dtype=np.int64)
-    starts = offsets[vertices]
-    dims = offsets[vertices + 1] - starts
-    first = np.repeat(np.cumsum(dims) - dims, dims)
-    return np.repeat(starts, dims) + np.arange(int(dims.sum())) - first
+from ..util.arrays import vertex_dofs  # noqa: F401 (re-exported: dd.vertex_dofs)
 
 
 @dataclass(frozen=True)

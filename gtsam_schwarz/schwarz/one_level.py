@@ -20,10 +20,14 @@ class AdditiveSchwarz(SchwarzOperator):
 
     def __init__(self, sets: IndexSets, A=None):
         self.n = sets.n
-        self.sets = sets
         self.solver = BlockDiagonalSolver(sets)
         if A is not None:
             self.update(A)
+
+    @property
+    def sets(self) -> IndexSets:
+        """The subdomains' index sets (each set's vertices in its factorization's order)."""
+        return self.solver.sets
 
     @classmethod
     def create(cls, n, decomposition=None, translation_mask=None, **options):

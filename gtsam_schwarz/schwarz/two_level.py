@@ -102,7 +102,12 @@ class TwoLevelSchwarz(SumOperator):
         """Interface components and the harmonic-extension plan (symbolic, once per graph)."""
         bound_heap_fragmentation()
         self.interface = find_interface(self.decomposition, self.interface_grouping)
-        self.extension = HarmonicExtension(self.decomposition, self.interface)
+        order = None
+        local = self.one_level.solver
+        if local.order_vertices(A):  # one fill-reducing order for the subdomain blocks and their interiors
+            sets = local.sets
+            order = (sets.vertices, np.repeat(np.arange(sets.count), np.diff(sets.vertex_ptr)))
+        self.extension = HarmonicExtension(self.decomposition, self.interface, vertex_order=order)
         self.memory = None
         return self
 

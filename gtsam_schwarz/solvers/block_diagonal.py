@@ -11,7 +11,9 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from ..util import vertex_dofs
 from .base import SingularLocalMatrixError
+from .cost import pattern_ordering, vertex_pattern
 from .gather import Gather, block_positions, vertex_level, sharing_vertex_level
 from .sparse import SparseCholesky
 
@@ -136,7 +138,8 @@ class BlockDiagonalSolver:
     subdomains of about ``CHUNK_ENTRIES`` entries each (one factor per chunk: only one chunk's
     gathered matrix exists beside the factors, at 91 125 3D poses 250 MB less at the peak). The
     symbolic work (gather positions, ordering) is done on the first :meth:`update`; later ones with
-    a matrix of the same pattern only refactor numerically.
+    a matrix of the same pattern only refactor numerically. Sets of whole vertices are first put in
+    a fill-reducing order (:meth:`order_vertices`) and factorized in it.
     """
 
     DENSE_MAX = 12
@@ -149,6 +152,7 @@ class BlockDiagonalSolver:
         self._dense = None
         self._chunks = None  # [(lo, hi, Gather, factor)]: local rows lo:hi, their blocks and factor
         self._dense_blocks = bool(sets.count and sizes.min() == sizes.max() and sizes[0] <= self.DENSE_MAX)
+        self.ordered = None  # None: not decided; True: the sets are in a fill-reducing order (factorized in it)
         if A is not None:
             self.update(A)
 
@@ -166,6 +170,34 @@ class BlockDiagonalSolver:
             chunks.append([int(sets.ptr[j0]), int(sets.ptr[j1]), _BlockDiagonalGather(part), None])
         return chunks
 
+    def order_vertices(self, A: sp.spmatrix) -> bool:
+        """Put every set's vertices in the fill-reducing order of CHOLMOD's analysis of the vertex
+        pattern of diag(A_1, …, A_N) (before the first :meth:`update`); the blocks are then factorized
+        in their own order. The vertex level has a d²-th of the entries: lawnmower 600x600, the
+        one-level blocks' analyses 0.13 against 0.7 s, the same nnz(L), solves 26 against 34 ms (the
+        factor's rows in the gathered order). Returns whether the sets were reordered (sets of whole
+        vertices, sparse blocks, CHOLMOD's symbolic interface usable)."""
+        if self.ordered is not None:
+            return self.ordered
+        sets = self.sets
+        self.ordered = False
+        if self._dense_blocks or sets.vertices is None or self._chunks is not None or not sets.count:
+            return False
+        nv = len(sets.offsets) - 1
+        vsets = type(sets)(indices=sets.vertices, ptr=sets.vertex_ptr, n=nv)
+        perm = pattern_ordering(block_diagonal(vertex_pattern(sp.csr_matrix(A), sets.offsets), vsets))
+        if perm is None:
+            return False
+        rank = np.empty_like(perm)
+        rank[perm] = np.arange(len(perm))
+        # the blocks never couple, so the permutation keeps every set's positions together: sort within sets
+        block = np.repeat(np.arange(sets.count), np.diff(sets.vertex_ptr))
+        vertices = sets.vertices[np.lexsort((rank, block))]
+        self.sets = type(sets)(indices=vertex_dofs(vertices, sets.offsets), ptr=sets.ptr, n=sets.n, vertices=vertices,
+                               vertex_ptr=sets.vertex_ptr, offsets=sets.offsets)
+        self.ordered = True
+        return True
+
     def update(self, A: sp.spmatrix) -> "BlockDiagonalSolver":
         """Refactor for new numbers in A (symbolic work is reused while A's pattern is unchanged)."""
         A = sp.csr_matrix(A)
@@ -182,6 +214,7 @@ class BlockDiagonalSolver:
                 raise SingularLocalMatrixError("a diagonal block is singular")
             return self
         if self._chunks is None:
+            self.order_vertices(A)
             self._chunks = self._plan_chunks(A)
         with sharing_vertex_level():   # the chunks share A's vertex level while finding positions
             for chunk in self._chunks:
@@ -190,7 +223,7 @@ class BlockDiagonalSolver:
                 B = gather(A)
                 if factor is None or gather.pattern is not pattern:
                     chunk[3] = None
-                    chunk[3] = SparseCholesky(B, "a subdomain matrix")
+                    chunk[3] = SparseCholesky(B, "a subdomain matrix", ordering="natural" if self.ordered else None)
                 else:
                     factor.refactor(B)
                 del B

@@ -113,6 +113,14 @@ def column_counts(S: sp.spmatrix) -> np.ndarray | None:
     """Entries per column of the Cholesky factor of the symmetric pattern S (its upper triangle is
     read; diagonal included) under CHOLMOD's default ordering, from ``cholmod_analyze`` alone; None
     where the library is not usable here (the caller falls back to a numeric factorization)."""
+    found = ordering(S)
+    return None if found is None else found[0]
+
+
+def ordering(S: sp.spmatrix) -> tuple[np.ndarray, np.ndarray] | None:
+    """(column counts, permutation) of CHOLMOD's analysis of the symmetric pattern S: the factor of
+    S[p][:, p] has those column counts in that order (p: the ordering CHOLMOD picks, postordered);
+    None where the library is not usable here."""
     lib = _library()
     held = _pattern(S) if lib is not None else None
     if held is None:
@@ -127,13 +135,16 @@ def column_counts(S: sp.spmatrix) -> np.ndarray | None:
             return None
         try:
             head = _FactorHead.from_address(L)
-            if head.n != n or not head.ColCount:
+            if head.n != n or not head.ColCount or not head.Perm:
                 return None
             counts = np.ctypeslib.as_array((ctypes.c_int * n).from_address(head.ColCount)).astype(np.int64)
+            perm = np.ctypeslib.as_array((ctypes.c_int * n).from_address(head.Perm)).astype(np.int64)
         finally:
             lib.cholmod_free_factor(ctypes.byref(ctypes.c_void_p(L)), common)
     finally:
         lib.cholmod_finish(common)
     if counts.min(initial=1) < 1 or counts.max(initial=1) > n:
         return None  # not a factor's column counts: a layout this module does not know
-    return counts
+    if n and (perm.min() < 0 or perm.max() >= n or np.bincount(perm, minlength=n).max() != 1):
+        return None
+    return counts, perm

@@ -142,6 +142,20 @@ def record_column_counts(S: sp.spmatrix, factor) -> None:
         _LAST_COUNTS[:] = [(_pattern_key(S), factor.column_counts())]
 
 
+def pattern_ordering(B: sp.spmatrix) -> np.ndarray | None:
+    """CHOLMOD's fill-reducing permutation of the symmetric pattern B (the ordering its analysis
+    picks, postordered), or None where its symbolic interface is not usable here. The column counts
+    of that analysis are remembered for :func:`pattern_cholesky_cost` of the same pattern."""
+    if SPARSE_BACKEND != "cholmod":
+        return None
+    S = _surrogate(sp.csr_matrix(B))
+    found = cholmod_symbolic.ordering(S)
+    if found is None:
+        return None
+    _LAST_COUNTS[:] = [(_pattern_key(S), found[0])]
+    return found[1]
+
+
 def _factor_column_counts(S: sp.csc_matrix) -> np.ndarray:
     """Column counts of the Cholesky factor of S (see :func:`_counts`), remembered for the last pattern."""
     if _LAST_COUNTS and _same_pattern(S, _LAST_COUNTS[0][0]):

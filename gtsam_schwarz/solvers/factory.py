@@ -16,15 +16,16 @@ def _zero_solver(rhs):
     return np.zeros_like(rhs)
 
 
-def factorize(K: sp.spmatrix, what: str = "local matrix") -> LocalSolver:
+def factorize(K: sp.spmatrix, what: str = "local matrix", ordering: str | None = None) -> LocalSolver:
     """Factorize an SPD matrix; returns a solver callable as ``solve(rhs)``.
 
     Small, fairly dense matrices (e.g. a coarse matrix A_0) get a dense Cholesky, everything else
-    a sparse Cholesky (:class:`SparseCholesky`). A singular matrix raises a clear error.
+    a sparse Cholesky (:class:`SparseCholesky`; ``ordering``: its CHOLMOD ordering method, "natural"
+    for a matrix already in a fill-reducing order). A singular matrix raises a clear error.
     """
     n = K.shape[0]
     if n == 0:
         return _zero_solver
     if n <= DENSE_FACTOR_MAX and K.nnz >= 0.1 * n * n:
         return DenseCholesky(K, what)
-    return SparseCholesky(K, what)
+    return SparseCholesky(K, what, ordering=ordering)

@@ -1,4 +1,4 @@
-"""``np.unique`` of 1-D arrays by one sort: numpy 2.4's hash-based ``np.unique`` measured 18x slower
+"""Array helpers. ``sorted_unique``: ``np.unique`` of 1-D arrays by one sort: numpy 2.4's hash-based ``np.unique`` measured 18x slower
 on 4M random integers here (0.97 s against 0.055 s), and 36 s of the PETSc assembly setup at 262k poses."""
 
 from __future__ import annotations
@@ -25,3 +25,12 @@ def sorted_unique(a, return_index: bool = False, return_inverse: bool = False):
         inv[order] = np.cumsum(first) - 1
         out.append(inv)
     return tuple(out)
+
+
+def vertex_dofs(vertices: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Concatenated dof indices of ``vertices`` (each vertex v owns offsets[v]:offsets[v+1])."""
+    vertices = np.asarray(vertices, dtype=np.int64)
+    starts = offsets[vertices]
+    dims = offsets[vertices + 1] - starts
+    first = np.repeat(np.cumsum(dims) - dims, dims)
+    return np.repeat(starts, dims) + np.arange(int(dims.sum())) - first

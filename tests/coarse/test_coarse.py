@@ -172,3 +172,31 @@ def test_rows_to_csr_reads_column_major_rows_in_blocks():
         out = np.full(len(expected), np.nan)
         _rows_to_csr(X, k_row, out, rows_per_block=block)
         assert np.array_equal(out, expected)
+
+
+@pytest.mark.parametrize("name, overlap", [("rgdsw-linear", 0), ("gdsw", 1)])
+def test_extension_in_the_subdomains_fill_reducing_order_is_the_same_basis(monkeypatch, name, overlap):
+    """Interior dofs in the one-level blocks' vertex order (A_II factorized in it, no ordering of its
+    own) give the same Φ, A_0 and preconditioner as the interior in dof order."""
+    from gtsam_schwarz.linearization.native import NativeLinearizer
+    from gtsam_schwarz.problems import lawnmower
+    from gtsam_schwarz.solvers import SPARSE_BACKEND, BlockDiagonalSolver
+
+    prob = lawnmower(14, 14, sigma=0.01, seed=2)
+    lin = NativeLinearizer.from_arrays(**prob.arrays)
+    state = lin.initial_state()
+    H = sp.csr_matrix(lin.linearize(state).H) + sp.identity(lin.offsets[-1]) * 1e-3
+    dec = decompose(GraphStructure.from_matrix(H, lin.offsets), 6, "metis", overlap)
+    mask = np.tile([True, True, False], len(lin.offsets) - 1)
+    ordered = make_preconditioner(name, H, dec, mask, geometry=lin.geometry(state))
+    monkeypatch.setattr(BlockDiagonalSolver, "order_vertices", lambda self, A: False)
+    plain = make_preconditioner(name, H, dec, mask, geometry=lin.geometry(state))
+    assert not plain.extension.ordered
+    assert ordered.extension.ordered == (SPARSE_BACKEND == "cholmod")
+    if ordered.extension.ordered:
+        assert not np.array_equal(ordered.extension.interior, plain.extension.interior)
+    P1, P2 = ordered.coarse_space.basis.tocsr(), plain.coarse_space.basis.tocsr()
+    assert abs(P1 - P2).max() <= 1e-9 * abs(P2).max()
+    assert abs(ordered.coarse_space.A0 - plain.coarse_space.A0).max() <= 1e-8 * abs(plain.coarse_space.A0).max()
+    x = np.random.default_rng(1).standard_normal(H.shape[0])
+    assert np.allclose(ordered.matvec(x), plain.matvec(x), rtol=1e-8, atol=1e-10)
