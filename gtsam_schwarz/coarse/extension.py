@@ -13,10 +13,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..dd.decomposition import Decomposition
-from ..dd.index_sets import vertex_dofs
 from ..dd.interface import Interface
 from ..solvers import SparseCholesky, Submatrix, factorize
 from ..solvers.gather import pattern_of, sharing_vertex_level
+from ..util import vertex_dofs
 from ..util.sparse import row_block, row_entries
 
 
