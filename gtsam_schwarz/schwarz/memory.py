@@ -69,7 +69,10 @@ def estimate_two_level(M, A, geometry=None) -> MemoryEstimate:
     S = sp.csc_matrix(dec.overlapping)
     S.sort_indices()
     vsets = IndexSets(indices=S.indices.astype(np.int64), ptr=S.indptr.astype(np.int64), n=S.shape[0])
-    blocks = block_diagonal(vertex_pattern(A, offsets), vsets)
+    solver = getattr(getattr(M, "one_level", None), "solver", None)
+    blocks = solver.take_vertex_blocks() if hasattr(solver, "take_vertex_blocks") else None
+    if blocks is None or blocks.shape[0] != len(vsets.indices):   # not formed by the one-level setup
+        blocks = block_diagonal(vertex_pattern(A, offsets), vsets)
     local = pattern_cholesky_cost(blocks, np.diff(offsets)[vsets.indices])
     n_block = int(np.diff(offsets)[vsets.indices].sum())
     nI = len(ext.interior)

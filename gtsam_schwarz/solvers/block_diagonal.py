@@ -153,6 +153,7 @@ class BlockDiagonalSolver:
         self._chunks = None  # [(lo, hi, Gather, factor)]: local rows lo:hi, their blocks and factor
         self._dense_blocks = bool(sets.count and sizes.min() == sizes.max() and sizes[0] <= self.DENSE_MAX)
         self.ordered = None  # None: not decided; True: the sets are in a fill-reducing order (factorized in it)
+        self._vertex_blocks = None  # the vertex pattern of diag(A_i) that order_vertices analysed, until taken
         if A is not None:
             self.update(A)
 
@@ -185,9 +186,11 @@ class BlockDiagonalSolver:
             return False
         nv = len(sets.offsets) - 1
         vsets = type(sets)(indices=sets.vertices, ptr=sets.vertex_ptr, n=nv)
-        perm = pattern_ordering(block_diagonal(vertex_pattern(sp.csr_matrix(A), sets.offsets), vsets))
+        blocks = block_diagonal(vertex_pattern(sp.csr_matrix(A), sets.offsets), vsets)
+        perm = pattern_ordering(blocks)
         if perm is None:
             return False
+        self._vertex_blocks = blocks
         rank = np.empty_like(perm)
         rank[perm] = np.arange(len(perm))
         # the blocks never couple, so the permutation keeps every set's positions together: sort within sets
@@ -197,6 +200,13 @@ class BlockDiagonalSolver:
                                vertex_ptr=sets.vertex_ptr, offsets=sets.offsets)
         self.ordered = True
         return True
+
+    def take_vertex_blocks(self):
+        """The vertex pattern of diag(A_1, …, A_N) in the sets' original order, as :meth:`order_vertices`
+        analysed it (None if it did not), handed over once: the memory estimate of the same blocks
+        needs it (1M 2D poses: 0.5 s to form again)."""
+        blocks, self._vertex_blocks = self._vertex_blocks, None
+        return blocks
 
     def update(self, A: sp.spmatrix) -> "BlockDiagonalSolver":
         """Refactor for new numbers in A (symbolic work is reused while A's pattern is unchanged)."""

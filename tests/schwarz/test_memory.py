@@ -183,3 +183,19 @@ def test_estimate_within_a_factor_of_the_measured_peak(problem, size, subdomains
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, check=True)
     r = json.loads(out.stdout.strip().splitlines()[-1])
     assert 0.9 * r["measured"] <= r["estimate"] <= 2.5 * r["measured"], r
+
+
+def test_estimate_takes_the_one_level_setups_vertex_blocks_and_agrees_with_its_own(survey):
+    """The vertex blocks the one-level setup analysed are handed to the memory estimate once; the
+    estimate from them equals the one that forms them again."""
+    from gtsam_schwarz.schwarz import TwoLevelSchwarz
+    from gtsam_schwarz.solvers import SPARSE_BACKEND
+
+    _, H, dec, _, mask = survey
+    M = TwoLevelSchwarz(dec, kind="rgdsw", translation_mask=mask).setup(H)
+    handed = M.one_level.solver._vertex_blocks is not None
+    assert handed == (SPARSE_BACKEND == "cholmod")
+    first = estimate_two_level(M, H)
+    assert M.one_level.solver.take_vertex_blocks() is None  # taken
+    again = estimate_two_level(M, H)
+    assert first.parts == again.parts and first.local.nnz_L == again.local.nnz_L
