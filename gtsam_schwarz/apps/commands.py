@@ -210,8 +210,8 @@ def add_solve(sub) -> None:
     p.add_argument("--subdomains", type=positive_int, default=None, metavar="N",
                    help="number of subdomains (default: about 100 poses each in 2D (250 with exact steps), 32 in 3D (64 under 16 384 poses))")
     p.add_argument("--partition", choices=PARTITIONS, default="auto",
-                   help="how to cut the graph: trajectory segments, METIS, or auto (whichever gives fewer "
-                        "interface poses; default)")
+                   help="how to cut the graph: trajectory segments, cells of the poses' positions "
+                        "(geometric), METIS, or auto (whichever gives the fewest interface poses; default)")
     p.add_argument("--overlap", type=nonnegative_int, default=None, metavar="K",
                    help="layers of overlap grown around each subdomain (default: 0 for rgdsw-linear, "
                         "gdsw-linear and auto, 1 for the others)")
@@ -336,7 +336,7 @@ def run_solve(args) -> int:
     report = {
         "file": str(args.file), "poses": loaded.poses, "edges": loaded.edges, "dimension": loaded.dimension,
         "method": args.method, "preconditioner": args.preconditioner, "partition": args.partition,
-        "subdomains": row["subdomains"], "overlap": params.overlap_layers(), "coarse_size": row["coarse_size"],
+        "partition_used": row.get("partition"), "subdomains": row["subdomains"], "overlap": params.overlap_layers(), "coarse_size": row["coarse_size"],
         "iterations": row["iterations"], "linear_solves": row["linear_solves"],
         "cg_iterations": row["cg_iterations"], "cg_mean": row["cg_mean"],
         "initial_error": row["initial_error"], "final_error": row["final_error"],
@@ -366,7 +366,7 @@ def run_solve(args) -> int:
               f"({row['stop_reason']}): error {row['initial_error']:.8g} -> {row['final_error']:.8g}; "
               + ("no linear solve; " if not row["linear_solves"] else
                  "sparse Cholesky; " if row["linear_solver"]["used"] == "direct" else
-                 f"{row['subdomains']} subdomains, coarse space {row['coarse_size']}, "
+                 f"{row['subdomains']} subdomains ({row.get('partition') or args.partition}), coarse space {row['coarse_size']}, "
                  f"{row['cg_mean']:.1f} CG iterations per solve; ") + f"{row['seconds']:.2f} s "
               f"(linearize {report['seconds']['linearize']:.2f}, setup {split['setup']:.2f}, cg {split['cg']:.2f})")
         if truth is not None:

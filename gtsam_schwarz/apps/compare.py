@@ -86,7 +86,7 @@ def run_ours(graph, initial, params: SchwarzParams, arrays: dict | None = None) 
     split = {k: sum(h["seconds"][k] for h in opt.history) for k in ("linearize", "export", "setup", "cg", "update")}
     return {"solver": params.preconditioner, "method": params.method, "final_error": s["final_error"],
             "iterations": s["iterations"], "linear_solves": s["linear_solves"], "cg_mean": s["cg_mean"],
-            "cg_iterations": s["cg_iterations"], "subdomains": s["subdomains"], "coarse_size": s["coarse_size"],
+            "cg_iterations": s["cg_iterations"], "subdomains": s["subdomains"], "partition": s.get("partition"), "coarse_size": s["coarse_size"],
             "converged": s["converged"], "stop_reason": s["stop_reason"], "initial_error": s["initial_error"],
             "seconds": seconds, "split": split, "values": values, "history": opt.history,
             "decomposition": opt.decomposition, "linear_solver": s["linear_solver"], "anchored": s["anchored"]}

@@ -7,11 +7,12 @@ from .decomposition import Decomposition, decompose, segments
 from .geometry import VertexGeometry
 from .index_sets import IndexSets, vertex_dofs
 from .interface import Interface, find_interface
-from .partition import (PARTITIONERS, PARTITIONS, auto_partition, default_subdomains, interface_count,
-                        metis_partition, partition_edges, segment_partition)
+from .partition import (PARTITIONERS, PARTITIONS, auto_partition, choose_partition, coordinate_cells,
+                        default_subdomains, geometric_partition, interface_count, metis_partition,
+                        partition_edges, segment_partition)
 from .structure import GraphStructure
 
 __all__ = ["Decomposition", "GraphStructure", "IndexSets", "Interface", "PARTITIONERS", "PARTITIONS",
-           "VertexGeometry", "auto_partition", "decompose", "default_subdomains", "find_interface",
-           "interface_count", "metis_partition", "partition_edges", "segment_partition", "segments",
+           "VertexGeometry", "auto_partition", "choose_partition", "coordinate_cells", "decompose",
+           "default_subdomains", "find_interface", "geometric_partition", "interface_count", "metis_partition", "partition_edges", "segment_partition", "segments",
            "vertex_dofs"]

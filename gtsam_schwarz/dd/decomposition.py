@@ -13,7 +13,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .index_sets import IndexSets, vertex_dofs
-from .partition import partition_edges
+from .partition import named_partition
 from .structure import GraphStructure
 from ..util import sorted_unique
 
@@ -33,6 +33,7 @@ class Decomposition:
     vertex_subdomains: sp.csr_matrix  # (n_vertices × N) incidence of V_i
     overlapping: sp.csr_matrix  # (n_vertices × N) incidence of V_i^δ
     overlap: int
+    partition: str = ""  # the partitioner that cut E (``auto`` names its choice); "" if given as labels
 
     @property
     def n_subdomains(self) -> int:
@@ -40,7 +41,7 @@ class Decomposition:
 
     @classmethod
     def build(cls, structure: GraphStructure, edge_subdomain: np.ndarray, overlap: int = 1,
-              grow_along: str = "odometry") -> "Decomposition":
+              grow_along: str = "odometry", partition: str = "") -> "Decomposition":
         """V_i from the edge partition, then δ = ``overlap`` layers grown along ``grow_along``
         ("odometry", the paper's choice, or "all" edges)."""
         if overlap < 0:
@@ -62,7 +63,7 @@ class Decomposition:
         for _ in range(overlap):
             S = _binary(S + grow @ S)
         return cls(structure=structure, edge_subdomain=part if E else np.zeros(0, np.int64),
-                   vertex_subdomains=S0, overlapping=S, overlap=overlap)
+                   vertex_subdomains=S0, overlapping=S, overlap=overlap, partition=partition)
 
     def vertex_sets(self, overlapping: bool = True) -> list[np.ndarray]:
         S = sp.csc_matrix(self.overlapping if overlapping else self.vertex_subdomains)
@@ -91,6 +92,8 @@ def segments(structure: GraphStructure, n_subdomains: int, overlap: int = 1,
 
 
 def decompose(structure: GraphStructure, n_subdomains: int, partition: str = "auto",
-              overlap: int = 1, grow_along: str = "odometry") -> Decomposition:
-    """Edge partition by ``partition`` (a name in :data:`PARTITIONERS`), then δ-layer overlap."""
-    return Decomposition.build(structure, partition_edges(structure, n_subdomains, partition), overlap, grow_along)
+              overlap: int = 1, grow_along: str = "odometry", coordinates=None) -> Decomposition:
+    """Edge partition by ``partition`` (a name in :data:`PARTITIONERS`; ``coordinates``, the vertices'
+    positions (n_vertices, d), for the geometric one), then δ-layer overlap."""
+    name, edge_subdomain = named_partition(structure, n_subdomains, partition, coordinates)
+    return Decomposition.build(structure, edge_subdomain, overlap, grow_along, name)

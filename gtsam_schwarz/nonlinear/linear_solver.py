@@ -176,11 +176,18 @@ class PreconditionedCG(LinearSolver):
         dims = np.diff(self.offsets)
         return default_subdomains(nv, p.subdomain_size, int(np.bincount(dims).argmax()) if nv else 3, p.inexact_krylov)
 
-    def _decompose(self, H):
+    def _decompose(self, H, geometry=None):
+        """The decomposition (made on the first call): ``geometry`` (a :class:`VertexGeometry` or a
+        callable giving one) lends the poses' positions to the geometric partition."""
         if self.decomposition is None:
             p = self.params
             structure = GraphStructure.from_matrix(H, self.offsets)
-            self.decomposition = decompose(structure, self.n_subdomains(), p.partition, p.overlap_layers(), p.grow_along)
+            coordinates = None
+            if geometry is not None and p.partition in ("auto", "geometric"):
+                g = geometry() if callable(geometry) else geometry
+                coordinates = None if g is None else g.positions
+            self.decomposition = decompose(structure, self.n_subdomains(), p.partition, p.overlap_layers(),
+                                           p.grow_along, coordinates)
         return self.decomposition
 
     def moved(self, step_max: float) -> None:
@@ -225,7 +232,7 @@ class PreconditionedCG(LinearSolver):
         M = self.operator
         self._rebuilt = not (lag and M is not None)
         if M is None or (not lag and not p.reuse_symbolic):
-            M = create_preconditioner(p.preconditioner, H.shape[0], self._decompose(H), self.translation_mask,
+            M = create_preconditioner(p.preconditioner, H.shape[0], self._decompose(H, geometry), self.translation_mask,
                                       interface_grouping=p.interface_grouping, coarse_modes=p.coarse_modes,
                                       memory_limit=p.memory_limit)
             M.setup(H)
@@ -404,7 +411,7 @@ class AutoSolver(LinearSolver):
                            f"direct {t_direct:.3g} s per solve (predicted) < {floor:.3g} s, the time of "
                            f"{self.model.SCHWARZ_OVERHEAD * self.model.SCREEN_ITERATIONS:g} SpMVs (Schwarz cannot win)")
             return self._chose()
-        dec = cg._decompose(H)
+        dec = cg._decompose(H, geometry)
         M = create_preconditioner(self.schwarz_name, H.shape[0], dec, self.translation_mask,
                                   interface_grouping=params.interface_grouping, coarse_modes=params.coarse_modes,
                                   memory_limit=params.memory_limit)

@@ -406,6 +406,7 @@ class SchwarzOptimizer:
             "cg_total": int(sum(cg)),
             "cg_mean": float(np.mean(cg)) if cg else 0.0,
             "subdomains": self.decomposition.n_subdomains if self.decomposition else None,
+            "partition": (self.decomposition.partition or None) if self.decomposition else None,
             "coarse_size": self.history[-1].coarse_size if self.history else 0,
             "anchored": [int(k) for k in self._anchor_keys()],
             "linear_solver": self.linear_solver_choice(),

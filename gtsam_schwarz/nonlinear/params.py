@@ -46,7 +46,7 @@ class LinearSolverParams:
     preconditioner: str = "auto"  # auto | direct | a registered preconditioner (none, jacobi, …, gdsw, rgdsw)
     subdomains: int | None = None  # None: about `subdomain_size` poses each
     subdomain_size: int | None = None  # None: 100 poses in 2D (250 with forcing "none"), 32 in 3D (64 under 16 384 poses; dd.partition.default_subdomain_size)
-    partition: str = "auto"  # auto (segments or metis, the smaller interface) | segments | metis
+    partition: str = "auto"  # auto (segments, geometric or metis, the smallest interface) | segments | geometric | metis
     overlap: int | None = None  # None: 0 for rgdsw-linear / gdsw-linear (their edge subdomains share the interface
     # poses already; one layer more cost time and CG iterations on every survey, docs/survey.md), 1 otherwise
     grow_along: str = "odometry"  # odometry | all

@@ -275,7 +275,7 @@ class DistributedOptimizer(SchwarzOptimizer):
         if self.distributed:
             t0 = time.perf_counter()
             pattern = full.pattern.matrix(np.ones(full.pattern.nnz))
-            layout = self.linear_solver.set_layout(pattern)
+            layout = self.linear_solver.set_layout(pattern, full.geometry(self._state))
             dec = self.linear_solver.decomposition
             structure = dec.structure if dec is not None else GraphStructure.from_matrix(pattern, full.offsets)
             self._components = connected_components(structure.adjacency(), directed=False)

@@ -165,10 +165,10 @@ class PetscSchwarzSolver(PreconditionedCG):
         self.timings = {"assemble": 0.0, "coarse_basis": 0.0, "pc_setup": 0.0, "ksp_solve": 0.0, "gather": 0.0}
 
     # -- layout and assembly --------------------------------------------------------------------
-    def _layout(self, H) -> RankLayout:
+    def _layout(self, H, geometry=None) -> RankLayout:
         if self.layout is None:
             if self.kind[0] in ("two-level", "one-level"):
-                self.layout = rank_layout(self._decompose(H), self.size)
+                self.layout = rank_layout(self._decompose(H, geometry), self.size)
             else:  # no subdomains needed: contiguous blocks of vertices
                 self.layout = _vertex_layout(self.offsets, self.size)
         return self.layout
@@ -445,6 +445,7 @@ class PetscSchwarzSolver(PreconditionedCG):
         in the original numbering, complete on every rank."""
         t0 = time.perf_counter()
         H = sp.csr_matrix(H)
+        self._layout(H, geometry)   # the serial solver's subdomains (its partition sees the poses too)
         created = self._assemble(H)
         lay = self.layout
         lo, hi = lay.rows(self.rank)
@@ -459,9 +460,10 @@ class PetscSchwarzSolver(PreconditionedCG):
         self.timings["gather"] += time.perf_counter() - t3
         return result
 
-    def set_layout(self, structure_matrix: sp.spmatrix) -> RankLayout:
-        """Decompose (once) from a matrix with H's block pattern and fix the rows of every rank."""
-        return self._layout(sp.csr_matrix(structure_matrix))
+    def set_layout(self, structure_matrix: sp.spmatrix, geometry=None) -> RankLayout:
+        """Decompose (once) from a matrix with H's block pattern and fix the rows of every rank
+        (``geometry``: the poses, for the geometric partition, as the serial solver's first solve has)."""
+        return self._layout(sp.csr_matrix(structure_matrix), geometry)
 
     def solve_distributed(self, H, damping: np.ndarray | None, b, tol, geometry):
         """(H + diag(damping)) x = b, H, b and damping already distributed (layout numbering); ``result.x``
