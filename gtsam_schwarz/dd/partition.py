@@ -104,11 +104,20 @@ def interface_count(structure: GraphStructure, edge_subdomain: np.ndarray) -> in
 
 
 def _interface_size(edges: np.ndarray, edge_subdomain: np.ndarray, n_vertices: int) -> int:
-    v = np.r_[edges[:, 0], edges[:, 1]]
-    part = np.r_[edge_subdomain, edge_subdomain]
-    n_parts = int(part.max(initial=0)) + 1
-    verts = sorted_unique(v * np.int64(n_parts) + part) // n_parts  # one entry per (vertex, subdomain)
-    return int(np.count_nonzero(np.bincount(verts, minlength=n_vertices) >= 2))
+    """Vertices whose incident edges lie in two or more subdomains: the least and the largest subdomain
+    per vertex over its edges grouped by vertex (scipy's counting sort; 1M poses ~0.1 s against
+    0.35 s for a sort of the (vertex, subdomain) pairs)."""
+    if len(edges) == 0:
+        return 0
+    part = np.asarray(edge_subdomain, dtype=np.int64)
+    rows = np.r_[edges[:, 0], edges[:, 1]]
+    m = len(rows)
+    # CSR by vertex of each incidence's number: its column index array is the incidences grouped by vertex
+    G = sp.csr_matrix((np.ones(m, dtype=np.int8), (rows, np.arange(m))), shape=(n_vertices, m))
+    at = G.indices
+    grouped = np.r_[part, part][at]
+    starts = G.indptr[:-1][np.diff(G.indptr) > 0]
+    return int(np.count_nonzero(np.minimum.reduceat(grouped, starts) != np.maximum.reduceat(grouped, starts)))
 
 
 # -- geometric: cells of a coordinate multisection -------------------------------------------------
@@ -197,7 +206,7 @@ def _coordinates(structure: GraphStructure, coordinates) -> np.ndarray | None:
 # 1/WINDOW_SHARE of the geometric cells around the middle of the map, METIS's partition of the window
 # has an interface no smaller than the cells' by GEOMETRIC_TOLERANCE (METIS into 3 600 parts: 1.7 s at
 # 360 000 poses, 5 s at 1M; the window's METIS ~1/16 of it). Below, all candidates are compared whole.
-WINDOW_FROM = 50_000
+WINDOW_FROM = 20_000
 WINDOW_SHARE = 16
 GEOMETRIC_TOLERANCE = 1.1
 
