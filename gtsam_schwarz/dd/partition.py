@@ -157,10 +157,15 @@ def coordinate_cells(coordinates: np.ndarray, n_parts: int) -> np.ndarray:
     """Vertex → cell of a multisection of the coordinates (n, d): equal-count slabs along the longest
     axis, each cut into equal-count slabs along the next, and so on; about ``n_parts`` compact cells of
     equal size (one sort per axis, no graph work). Cells are numbered densely from 0."""
+    return _multisection(coordinates, n_parts)[0]
+
+
+def _multisection(coordinates: np.ndarray, n_parts: int) -> tuple[np.ndarray, np.ndarray]:
+    """(:func:`coordinate_cells`' cells, the slabs along each axis)."""
     X = np.asarray(coordinates, dtype=np.float64)
     n = X.shape[0]
     if n == 0 or n_parts <= 1:
-        return np.zeros(n, dtype=np.int64)
+        return np.zeros(n, dtype=np.int64), np.ones(X.shape[1] if X.ndim == 2 else 1, dtype=np.int64)
     lo, hi = np.percentile(X, [1.0, 99.0], axis=0)   # the extent of the bulk (a few outliers do not set it)
     extent = hi - lo
     k = _cuts_per_axis(extent, min(int(n_parts), n))
@@ -170,10 +175,10 @@ def coordinate_cells(coordinates: np.ndarray, n_parts: int) -> np.ndarray:
             order = np.lexsort((X[:, axis], label))   # by cell, then along the axis
             cell = label[order]
             first = np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]])
-            size = np.repeat(np.diff(np.r_[first, n]), np.diff(np.r_[first, n]))
-            rank = np.arange(n) - np.repeat(first, np.diff(np.r_[first, n]))
-            label[order] = cell * k[axis] + rank * k[axis] // size
-    return sorted_unique(label, return_inverse=True)[1]
+            count = np.diff(np.r_[first, n])
+            rank = np.arange(n) - np.repeat(first, count)
+            label[order] = cell * k[axis] + rank * k[axis] // np.repeat(count, count)
+    return sorted_unique(label, return_inverse=True)[1], k
 
 
 def geometric_partition(structure: GraphStructure, n_subdomains: int, coordinates=None) -> np.ndarray:
@@ -211,13 +216,14 @@ WINDOW_SHARE = 16
 GEOMETRIC_TOLERANCE = 1.1
 
 
-def _geometric_holds(structure: GraphStructure, cells: np.ndarray, X: np.ndarray) -> bool:
-    """Whether the geometric cells cut a central window of the graph about as well as METIS does."""
+def _geometric_holds(structure: GraphStructure, cells: np.ndarray, X: np.ndarray, slabs: np.ndarray) -> bool:
+    """Whether the geometric cells cut a central window of the graph about as well as METIS does (the
+    window: the cells whose centroids lie in the middle of the centroids along every cut axis)."""
     n_cells = int(cells.max()) + 1
-    d = X.shape[1]
+    cut = np.flatnonzero(slabs > 1)
     size = np.bincount(cells, minlength=n_cells)
-    centroid = np.stack([np.bincount(cells, X[:, a], minlength=n_cells) for a in range(d)], 1) / np.maximum(size, 1)[:, None]
-    share = (1.0 / WINDOW_SHARE) ** (1.0 / d)   # of the cells along each axis
+    centroid = np.stack([np.bincount(cells, X[:, a], minlength=n_cells) for a in cut], 1) / np.maximum(size, 1)[:, None]
+    share = (1.0 / WINDOW_SHARE) ** (1.0 / max(len(cut), 1))   # of the cells along each cut axis
     lo, hi = np.quantile(centroid, [0.5 - share / 2, 0.5 + share / 2], axis=0)
     in_window = np.all((centroid >= lo) & (centroid <= hi), axis=1)
     parts = int(in_window.sum())
@@ -254,10 +260,10 @@ def choose_partition(structure: GraphStructure, n_subdomains: int, coordinates=N
     metis_needed = True
     if X is not None and len(structure.edges) and n_subdomains > 1:
         N = int(min(int(n_subdomains), structure.n_vertices))
-        cells = coordinate_cells(X, N)
+        cells, slabs = _multisection(X, N)
         if cells.max() + 1 >= 0.9 * N:   # not fewer cells than asked (positions all alike): a fair candidate
             candidates.append(("geometric", cells[structure.edges[:, 1]]))
-            metis_needed = structure.n_vertices < WINDOW_FROM or not _geometric_holds(structure, cells, X)
+            metis_needed = structure.n_vertices < WINDOW_FROM or not _geometric_holds(structure, cells, X, slabs)
     if metis_needed:
         candidates.append(("metis", metis_partition(structure, n_subdomains)))
     sizes = [interface_count(structure, part) for _, part in candidates]

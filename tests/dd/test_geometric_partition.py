@@ -114,3 +114,18 @@ def test_the_optimizer_partitions_by_the_poses():
     assert runs["auto"]["partition"] == "geometric" and runs["metis"]["partition"] == "metis"
     assert runs["auto"]["converged"] and runs["metis"]["converged"]
     assert runs["auto"]["final_error"] == pytest.approx(runs["metis"]["final_error"], rel=1e-8)
+
+
+def test_the_window_spans_only_the_cut_axes(monkeypatch):
+    """One floor of a 3D survey: no slab along the height, so the window is a square of cells and
+    the cells win without METIS on the whole graph."""
+    from gtsam_schwarz.problems import survey3d
+    prob = survey3d(1, 24, 24, sigma=0.01, seed=0)
+    structure, X = _structure(prob, prob.ground_truth)
+    cells, slabs = P._multisection(X, 36)
+    assert sorted(slabs.tolist()) == [1, 6, 6]
+    monkeypatch.setattr(P, "WINDOW_FROM", 100)
+    monkeypatch.setattr(P, "WINDOW_SHARE", 4)
+    assert P._geometric_holds(structure, cells, X, slabs)
+    monkeypatch.setattr(P, "metis_partition", lambda *a, **k: pytest.fail("METIS ran on the whole graph"))
+    assert P.choose_partition(structure, 36, X)[0] == "geometric"
