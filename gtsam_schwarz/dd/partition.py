@@ -163,9 +163,11 @@ def coordinate_cells(coordinates: np.ndarray, n_parts: int) -> np.ndarray:
 def _multisection(coordinates: np.ndarray, n_parts: int) -> tuple[np.ndarray, np.ndarray]:
     """(:func:`coordinate_cells`' cells, the slabs along each axis)."""
     X = np.asarray(coordinates, dtype=np.float64)
+    if X.ndim != 2 or not np.all(np.isfinite(X)):
+        raise ValueError(f"coordinates must be a finite (n, d) array, got shape {X.shape}")
     n = X.shape[0]
     if n == 0 or n_parts <= 1:
-        return np.zeros(n, dtype=np.int64), np.ones(X.shape[1] if X.ndim == 2 else 1, dtype=np.int64)
+        return np.zeros(n, dtype=np.int64), np.ones(X.shape[1], dtype=np.int64)
     lo, hi = np.percentile(X, [1.0, 99.0], axis=0)   # the extent of the bulk (a few outliers do not set it)
     extent = hi - lo
     k = _cuts_per_axis(extent, min(int(n_parts), n))

@@ -51,6 +51,8 @@ def test_a_flat_axis_gets_no_cut():
     for c in range(25):
         assert np.ptp(X[cells == c, 2]) > 0.008   # every cell spans the whole thickness
     assert np.array_equal(coordinate_cells(X, 1), np.zeros(5000, dtype=np.int64))
+    with pytest.raises(ValueError, match="finite"):
+        coordinate_cells(np.r_[X, [[np.nan, 0.0, 0.0]]], 25)
 
 
 def test_geometric_partition_needs_coordinates(survey):
