@@ -857,10 +857,11 @@ class NativeLinearizer:
             pool.append(buf)
         return buf
 
-    def release_scratch(self) -> None:
-        """Drop the scratch arrays kept between linearizations (about 1.5 × H's values): for runs
-        whose memory peak comes later (a Schwarz build), at the price of fresh pages next time."""
-        self._buffers = {"data": self._buffers.get("data", [])}
+    def release_scratch(self, values: bool = False) -> None:
+        """Drop the scratch arrays kept between linearizations (about 1.5 × H's values; ``values``: and
+        the pooled arrays of H's values, which a returned H still alive keeps for itself): for runs
+        whose memory peak comes later (a Schwarz build, the result), at the price of fresh pages next time."""
+        self._buffers = {} if values else {"data": self._buffers.get("data", [])}
 
     def _buffer(self, name: str, shape: tuple) -> np.ndarray:
         """Scratch array kept between calls (no page faults for large temporaries); not thread-safe."""

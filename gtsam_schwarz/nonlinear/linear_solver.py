@@ -45,6 +45,10 @@ class LinearSolver:
     def moved(self, step_max: float) -> None:
         """The linearization point moved by an accepted step of max-norm ``step_max``."""
 
+    def release(self) -> None:
+        """Drop the numbers held between solves (factorizations, coarse basis; the symbolic work is
+        kept): the next solve computes them anew. For the end of a run, whose result is built next."""
+
 
 class DirectSolver(LinearSolver):
     """Sparse Cholesky of H (CHOLMOD with one symbolic analysis, or SuperLU): the reference.
@@ -74,6 +78,7 @@ class DirectSolver(LinearSolver):
         self._refactor_seconds = self._iteration_seconds = None  # measured: refactor + solve; SpMV + solve
         self.predicted_seconds = None  # the cost model's factorization + solve (check_memory's or the auto choice's)
         self.ordering = None  # "natural" where H's own order fills in as little as CHOLMOD's (set with the prediction)
+        self._released = False  # the factor's numbers were dropped (release): refactorize, no lagged solve
 
     def check_memory(self, H) -> None:
         cost = cholesky_cost(H, self.offsets, natural=True)
@@ -119,7 +124,7 @@ class DirectSolver(LinearSolver):
         H = sp.csr_matrix(H)
         fresh = self._factor is None or not self._pattern.matches(H)
         tried = 0
-        if not fresh:
+        if not fresh and not self._released:
             result, tried = self._lagged_solve(H, rhs, tol)
             if result is not None:
                 return result
@@ -131,6 +136,7 @@ class DirectSolver(LinearSolver):
                                                                              ordering=self.ordering)
         else:
             self._factor.refactor(H)
+        self._released = False
         t2 = time.perf_counter()
         x = self._factor.solve(rhs)
         t3 = time.perf_counter()
@@ -144,6 +150,12 @@ class DirectSolver(LinearSolver):
                 self._factor.solve(H @ x)
                 self._iteration_seconds = time.perf_counter() - t3
         return SolveResult(x=x, iterations=tried, setup_seconds=t3 - t1, tolerance=0.0, lagged=tried > 0)
+
+
+    def release(self) -> None:
+        if self._factor is not None:
+            self._factor.release_numeric()
+            self._released = True
 
 
 class PreconditionedCG(LinearSolver):
@@ -195,6 +207,12 @@ class PreconditionedCG(LinearSolver):
         release = getattr(self.operator, "release", None)
         if release is not None and self._lag_cap() is None:  # the next solve rebuilds: drop what it replaces now
             release()
+
+    def release(self) -> None:
+        release = getattr(self.operator, "release", None)
+        if release is not None:
+            release(factors=True)
+            self._cg_after_build = self._change = self._subdomain_change = None   # the next solve rebuilds
 
     def _lag_cap(self, H=None) -> int | None:
         """Lagged preconditioner: keep the previous M while H's entries have changed by less than
@@ -473,6 +491,10 @@ class AutoSolver(LinearSolver):
     def moved(self, step_max: float) -> None:
         if self.chosen is not None:
             self.chosen.moved(step_max)
+
+    def release(self) -> None:
+        if self.chosen is not None:
+            self.chosen.release()
 
 
 # back-ends sit above this layer (they reuse the serial solver's pieces): loaded by name, no import cycle

@@ -380,7 +380,20 @@ class SchwarzOptimizer:
         if not self.converged:
             warnings.warn(f"SchwarzOptimizer did not converge: {self.stop_reason} "
                           f"(error {self.initial_error:.6g} -> {self._error:.6g})", RuntimeWarning, stacklevel=2)
+        self._release_run_memory()
         return self.values()
+
+    def _release_run_memory(self) -> None:
+        """Before the result is built: the linear solver's numbers (factorizations, coarse basis) and
+        the linearizer's buffers go back to the heap, where the result's ``gtsam.Values`` finds room,
+        and a caller that keeps the optimizer does not keep them. A later :meth:`iterate` computes
+        them anew (a fresh factorization or preconditioner, no lagged solve)."""
+        release = getattr(self.linear_solver, "release", None)
+        if release is not None:
+            release()
+        release = getattr(self.linearizer, "release_scratch", None)
+        if release is not None:
+            release(values=True)
 
     def optimizeSafely(self):
         """GTSAM's ``optimizeSafely``: ``optimize``, but on an exception return the best values so far."""

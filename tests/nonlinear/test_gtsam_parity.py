@@ -149,26 +149,34 @@ def test_automatic_linear_solver_records_its_choice_and_reason(monkeypatch):
 
 def test_linearizer_scratch_is_kept_for_direct_and_dropped_before_a_schwarz_build(monkeypatch):
     """The native linearizer's scratch survives a run that the automatic choice sends to the direct
-    solver (no fresh pages each iteration), and is dropped once Schwarz is chosen, before its build."""
+    solver (no fresh pages each iteration), and is dropped once Schwarz is chosen, before its build;
+    both runs drop everything at their end, before the result is built ("end")."""
     from gtsam_schwarz.linearization.native import NativeLinearizer
     from gtsam_schwarz.nonlinear.linear_solver import CostModel, PreconditionedCG
     prob = square_loops(8, 6, sigma=0.05, seed=2)
     events = []
     release = NativeLinearizer.release_scratch
-    monkeypatch.setattr(NativeLinearizer, "release_scratch", lambda self: (events.append("release"), release(self)))
+
+    def record(self, values=False):
+        events.append(("end", "S" in self._buffers) if values else "release")
+        release(self, values)
+
+    monkeypatch.setattr(NativeLinearizer, "release_scratch", record)
     build = PreconditionedCG.preconditioner
     monkeypatch.setattr(PreconditionedCG, "preconditioner",
                         lambda self, *a, **k: (events.append("build"), build(self, *a, **k))[1])
     auto = SchwarzOptimizer(prob.graph, prob.initial)
     auto.optimize()
     assert auto.summary()["linear_solver"]["used"] == "direct" and auto.iterations() >= 2
-    assert events == [] and "S" in auto.linearizer._buffers
+    assert events == [("end", True)] and auto.linearizer._buffers == {}
+    events.clear()
     monkeypatch.setattr(CostModel, "SCHWARZ_OVERHEAD", 0.0)
     monkeypatch.setattr(CostModel, "TWO_LEVEL_OVERHEAD", 0.0)
     schwarz = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(subdomains=4))
     schwarz.optimize()
     assert schwarz.summary()["linear_solver"]["used"] == "rgdsw-linear"
     assert events[:2] == ["release", "build"] and events.count("release") == schwarz.iterations()
+    assert events[-1][0] == "end"
 
 
 BEST_KNOWN = {"input_INTEL_g2o.g2o": 111.05, "input_M3500a_g2o.g2o": 3335.6, "MIT.g2o": 385.1195,

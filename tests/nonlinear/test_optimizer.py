@@ -304,3 +304,24 @@ def test_cost_model_counts_the_forcing_terms_cg_iterations():
     assert AutoSolver(LinearSolverParams(), offsets, mask).model.two_level_iterations == inexact.two_level_iterations
     assert AutoSolver(LinearSolverParams(forcing="none"), offsets, mask).model.two_level_iterations == exact.two_level_iterations
     assert 0 < AutoSolver.SCHWARZ_MARGIN < 1
+
+
+@pytest.mark.parametrize("name", ["direct", "rgdsw-linear"])
+def test_a_run_releases_its_solver_and_can_go_on(name):
+    """optimize() drops the linear solver's numbers before building the result; iterating on from
+    there builds them anew (a fresh factorization or preconditioner, not a lagged one) and keeps the
+    optimum (the error does not rise)."""
+    from gtsam_schwarz.problems import lawnmower
+    prob = lawnmower(20, 20, sigma=0.01, seed=0)
+    opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(method="lm", preconditioner=name, subdomains=4))
+    opt.optimize()
+    solver = opt.linear_solver
+    if name == "direct":
+        assert solver._released and solver._factor._factor is None
+    else:
+        assert solver.operator.coarse_space is None and not solver.operator.subdomains_factored
+    error = opt.error()
+    opt.iterate()
+    assert opt.error() <= error * (1 + 1e-12)
+    record = opt.history[-1]
+    assert not record.preconditioner_lagged and record.preconditioner_rebuilt
