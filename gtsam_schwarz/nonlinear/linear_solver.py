@@ -151,7 +151,6 @@ class DirectSolver(LinearSolver):
                 self._iteration_seconds = time.perf_counter() - t3
         return SolveResult(x=x, iterations=tried, setup_seconds=t3 - t1, tolerance=0.0, lagged=tried > 0)
 
-
     def release(self) -> None:
         if self._factor is not None:
             self._factor.release_numeric()
