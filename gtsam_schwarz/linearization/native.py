@@ -74,6 +74,12 @@ def _insert_all(values: gtsam.Values, keys: list, poses, kind: str) -> None:
 
 _TAKE_CHUNK = 1 << 20  # entries of H gathered per np.take (int32 positions become intp a chunk at a time)
 
+
+def _group_width(n: int, columns: int) -> int:
+    """Columns of the diagonal contributions summed per pose at a time (2D): about max(n, 2^18), so
+    that each group's bincounts over the n poses cost no more than its columns, plus two chunks."""
+    return min(columns, max(n, 1 << 18) + 2 * nk.CHUNK)
+
 _M = gtsam.noiseModel.mEstimator
 _ESTIMATORS = {getattr(_M, name): code for name, code in (
     ("Null", nk.GAUSSIAN), ("Huber", nk.HUBER), ("Cauchy", nk.CAUCHY), ("Tukey", nk.TUKEY),
@@ -779,28 +785,63 @@ class NativeLinearizer:
         """Blocks of one pose kind into the source array S (diagonal sums, off-diagonal blocks) and g;
         returns the kind's error. Residual and blocks are computed chunk by chunk.
 
-        Diagonal contributions (between i, between j, prior) go to C / G and are summed per pose by
-        bincount; off-diagonal blocks go straight to S (or are summed per pair if pairs repeat)."""
+        Diagonal contributions (between i, between j, prior) are summed per pose by bincount, a group
+        of chunks at a time; off-diagonal blocks go straight to S (or are summed per pair if pairs repeat)."""
         d, nsym = K.d, len(K.sym)
         mb, mp = K.nb, K.np_
         nc = 2 * mb + mp
         error = 0.0
         if d == 3:
-            C = self._buffer(f"C{d}", (nsym, nc))
-            G = self._buffer(f"G{d}", (d, nc))
+            # diagonal contributions a group of chunks at a time, summed per pose by bincount whenever
+            # the group's columns are full (about max(n, 2^18) factor ends: the bincounts' O(n) per group
+            # stays below their O(columns)); one nc-long scratch of 6 + 3 rows was most of the
+            # linearizer's scratch (360 000 Pose2s 104 MB, 1M 288 MB), allocated again beside a
+            # Schwarz preconditioner in the iterations after a build
+            n = K.n
+            width = _group_width(n, nc)
+            C = self._buffer(f"C{d}", (nsym, width))
+            G = self._buffer(f"G{d}", (d, width))
+            D, Gs = np.zeros((nsym, n)), np.zeros((d, n))
+            group: list = []   # the pose of every filled column, in pieces
+            fill = 0
+
+            def flush():
+                nonlocal fill
+                if fill:
+                    idx = np.concatenate(group)
+                    for s in range(nsym):
+                        D[s] += np.bincount(idx, C[s, :fill], minlength=n)
+                    for a in range(d):
+                        Gs[a] += np.bincount(idx, G[a, :fill], minlength=n)
+                    group.clear()
+                    fill = 0
+
+            def columns(poses: list) -> int:
+                """The first of len(poses) columns for these ends (the group summed first if full)."""
+                nonlocal fill
+                k = sum(len(p) for p in poses)
+                if fill + k > width:
+                    flush()
+                group.extend(poses)
+                fill += k
+                return fill - k
+
             if K.between is not None:
                 hij = S[K.hseg:K.hseg + 9 * mb].reshape(9, mb) if K.pairs is None else np.empty((9, mb))
                 for (lo, hi, Fc), rc in zip(K.between.chunks(), self._chunk_residuals(state, K, K.between)):
-                    nk.pose2_system(Fc, rc, hjj=tuple(C[:, mb + lo:mb + hi]), gj=tuple(G[:, mb + lo:mb + hi]),
-                                    hij=tuple(hij[:, lo:hi]), hii=tuple(C[:, lo:hi]), gi=tuple(G[:, lo:hi]))
+                    a, k = columns([K.cidx[lo:hi], K.cidx[mb + lo:mb + hi]]), hi - lo
+                    nk.pose2_system(Fc, rc, hjj=tuple(C[:, a + k:a + 2 * k]), gj=tuple(G[:, a + k:a + 2 * k]),
+                                    hij=tuple(hij[:, lo:hi]), hii=tuple(C[:, a:a + k]), gi=tuple(G[:, a:a + k]))
                     error += rc.error
                 if K.pairs is not None:
                     self._pair_sums(K, hij, S)
             if K.prior is not None:
                 o = 2 * mb
                 for (lo, hi, Fc), rc in zip(K.prior.chunks(), self._chunk_residuals(state, K, K.prior)):
-                    nk.pose2_system(Fc, rc, hjj=tuple(C[:, o + lo:o + hi]), gj=tuple(G[:, o + lo:o + hi]))
+                    a, k = columns([K.cidx[o + lo:o + hi]]), hi - lo
+                    nk.pose2_system(Fc, rc, hjj=tuple(C[:, a:a + k]), gj=tuple(G[:, a:a + k]))
                     error += rc.error
+            flush()
         else:  # 6×6 blocks: diagonal contributions summed per pose a chunk at a time (no nc-long
             # 21-row scratch: at 91 125 3D poses 110 MB less beside a Schwarz preconditioner)
             ia, ib = np.array(K.sym).T
@@ -831,9 +872,6 @@ class NativeLinearizer:
                     add(K.cidx[o + lo:o + hi], hjj, gj)
                     error += rc.error
         n = K.n
-        if d == 3:
-            D = [np.bincount(K.cidx, C[s], minlength=n) for s in range(nsym)]
-            Gs = [np.bincount(K.cidx, G[a], minlength=n) for a in range(d)]
         for s in range(nsym):
             S[K.dseg + s * n:K.dseg + (s + 1) * n] = D[s]
         gk = np.empty((n, d))

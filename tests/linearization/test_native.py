@@ -824,3 +824,25 @@ def test_gauge_check_on_native_hessians(kind):
     st = lin.state(values)
     free = free_components(lin.linearize(st).H, lin.offsets, lin.geometry(st))
     assert lin.keys[free].tolist() == [X(0), X(100)]
+
+
+def test_diagonal_sums_in_groups_equal_one_group(monkeypatch):
+    """2D diagonal contributions are summed per pose a group of chunks at a time (a bounded scratch of
+    about max(n, 2^18) columns): groups of a few chunks give H, g and the error of a single group to
+    rounding (a lawnmower whose 67 081 factor ends fill five groups of 2 chunks + 1 000 columns)."""
+    import gtsam_schwarz.linearization.native as native
+    from gtsam_schwarz.problems import lawnmower
+    assert native._group_width(1000, 10**7) == (1 << 18) + 2 * nk.CHUNK
+    assert native._group_width(10**6, 10**7) == 10**6 + 2 * nk.CHUNK and native._group_width(10**6, 5000) == 5000
+    prob = lawnmower(130, 130, sigma=0.01, seed=0)
+    ends = 2 * (130 * 130 - 1 + 129 * 129) + 1
+    runs = {}
+    for width in (2 * nk.CHUNK + 1000, ends):
+        monkeypatch.setattr(native, "_group_width", lambda n, columns, w=width: min(columns, w))
+        lin = NativeLinearizer.from_arrays(**prob.arrays)
+        runs[width] = lin.linearize(lin.state(prob.initial))
+        assert lin._buffers["C3"].shape[1] == width
+    a, b = runs.values()
+    np.testing.assert_allclose(a.H.data, b.H.data, rtol=1e-13, atol=1e-12 * np.abs(b.H.data).max())
+    np.testing.assert_allclose(a.g, b.g, rtol=1e-13, atol=1e-12 * np.abs(b.g).max())
+    assert a.error == pytest.approx(b.error, rel=1e-14)
