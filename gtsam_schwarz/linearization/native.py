@@ -80,6 +80,7 @@ def _group_width(n: int, columns: int) -> int:
     that each group's bincounts over the n poses cost no more than its columns, plus two chunks."""
     return min(columns, max(n, 1 << 18) + 2 * nk.CHUNK)
 
+
 _M = gtsam.noiseModel.mEstimator
 _ESTIMATORS = {getattr(_M, name): code for name, code in (
     ("Null", nk.GAUSSIAN), ("Huber", nk.HUBER), ("Cauchy", nk.CAUCHY), ("Tukey", nk.TUKEY),
