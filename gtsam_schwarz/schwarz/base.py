@@ -12,6 +12,7 @@ import numpy as np
 from scipy.sparse.linalg import LinearOperator
 
 from ..dd.geometry import VertexGeometry
+from ..util.threads import side_thread
 
 
 class SchwarzOperator:
@@ -55,7 +56,11 @@ class SchwarzOperator:
 
 
 class SumOperator(SchwarzOperator):
-    """Additive combination Σ_k M_k⁻¹ (each part keeps its own lifecycle)."""
+    """Additive combination Σ_k M_k⁻¹ (each part keeps its own lifecycle). ``concurrent``: two parts
+    are applied side by side, the second on :func:`~gtsam_schwarz.util.threads.side_thread` (the
+    same sum, bit for bit; worth it where the second runs mostly without Python's GIL)."""
+
+    concurrent = False
 
     def __init__(self, parts):
         self.parts = list(parts)
@@ -80,6 +85,11 @@ class SumOperator(SchwarzOperator):
         return self
 
     def apply(self, x):
+        if self.concurrent and len(self.parts) == 2:   # the second part on the side thread meanwhile
+            later = side_thread().submit(self.parts[1].apply, x)
+            y = self.parts[0].apply(x)
+            y += later.result()
+            return y
         y = self.parts[0].apply(x)
         for p in self.parts[1:]:
             y += p.apply(x)
