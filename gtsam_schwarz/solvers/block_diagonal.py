@@ -12,9 +12,11 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..util import vertex_dofs
+from ..util.threads import local_threads, run_all, wait_all
 from .base import SingularLocalMatrixError
 from .cost import pattern_ordering, vertex_pattern
 from .gather import Gather, block_positions, vertex_level, sharing_vertex_level
+from . import cholmod_native
 from .sparse import SparseCholesky
 
 
@@ -143,6 +145,7 @@ class BlockDiagonalSolver:
     """
 
     DENSE_MAX = 12
+    threaded = True  # simplicial chunks factorized and solved on the local threads (util.threads)
     CHUNK_ENTRIES = 8_000_000  # entries of A in the rows of one chunk (an upper bound of its block's)
 
     def __init__(self, sets, A: sp.spmatrix | None = None):
@@ -226,24 +229,45 @@ class BlockDiagonalSolver:
         if self._chunks is None:
             self.order_vertices(A)
             self._chunks = self._plan_chunks(A)
+        threads = self.threaded and len(self._chunks) > 1 and cholmod_native.available()
+        jobs = []
         with sharing_vertex_level():   # the chunks share A's vertex level while finding positions
             for chunk in self._chunks:
                 _, _, gather, factor = chunk
                 pattern = gather.pattern
                 B = gather(A)
-                if factor is None or gather.pattern is not pattern:
+                fresh = factor is None or gather.pattern is not pattern
+                if fresh:
                     chunk[3] = None
-                    chunk[3] = SparseCholesky(B, "a subdomain matrix", ordering="natural" if self.ordered else None)
+                if threads:   # factorized on the local threads while this one gathers the next chunk
+                    jobs.append(local_threads().submit(self._factorize, chunk, B, fresh))
                 else:
-                    factor.refactor(B)
+                    self._factorize(chunk, B, fresh)
                 del B
+        wait_all(jobs)
         return self
+
+    def _factorize(self, chunk: list, B: sp.csr_matrix, fresh: bool) -> None:
+        """Chunk's factor of B: refactorized, or (``fresh``) analysed first. Simplicial factors (CHOLMOD's
+        choice for such blocks) go through :mod:`.cholmod_native` where it works, without the GIL;
+        the others through scikit-sparse."""
+        if not fresh:
+            chunk[3].refactor(B)
+            return
+        natural = bool(self.ordered)
+        if cholmod_native.available():
+            factor = cholmod_native.SimplicialCholesky(B, "a subdomain matrix", natural=natural, factor=False)
+            if not factor.supernodal_preferred():
+                chunk[3] = factor.refactor(B)
+                return
+            del factor
+        chunk[3] = SparseCholesky(B, "a subdomain matrix", ordering="natural" if natural else None)
 
     def release(self) -> None:
         """Drop the numeric factorizations (to bound the memory); the next :meth:`update` refactorizes
         with the symbolic analyses kept."""
         for chunk in self._chunks or ():
-            if isinstance(chunk[3], SparseCholesky):
+            if isinstance(chunk[3], (SparseCholesky, cholmod_native.SimplicialCholesky)):
                 chunk[3].release_numeric()
             else:
                 chunk[3] = None
@@ -258,6 +282,14 @@ class BlockDiagonalSolver:
             yl = self._chunks[0][3].solve(xl)
         else:
             yl = np.empty_like(xl)
-            for lo, hi, _, factor in self._chunks:
+
+            def solve(lo, hi, factor):
                 yl[lo:hi] = factor.solve(xl[lo:hi])
+
+            jobs = [lambda c=c: solve(c[0], c[1], c[3]) for c in self._chunks]
+            if self.threaded and all(isinstance(c[3], cholmod_native.SimplicialCholesky) for c in self._chunks):
+                run_all(local_threads(), jobs)   # the chunks' solves side by side (no GIL held)
+            else:
+                for job in jobs:
+                    job()
         return np.bincount(self.sets.indices, weights=yl, minlength=self.n)

@@ -94,6 +94,11 @@ class SparseCholesky:
             raise SingularLocalMatrixError(f"{self.what} is singular: {exc}") from None
         return self
 
+    @property
+    def has_numeric(self) -> bool:
+        """Whether the factor holds numbers (not after :meth:`release_numeric`)."""
+        return self._factor is not None
+
     def release_numeric(self) -> None:
         """Drop the numeric factor (its memory) and keep the symbolic analysis: the next
         :meth:`refactor` allocates a factor again without a new ordering (lawnmower 600x600: the

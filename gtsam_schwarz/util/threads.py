@@ -10,12 +10,41 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 
-_POOL: list = []
+_POOLS: dict = {}
+WORKERS = 2  # the local solves' threads (this project's machines have two cores)
 
 
 def side_thread() -> ThreadPoolExecutor:
-    """The process's single worker thread (created on first use; it blocks while idle)."""
-    if not _POOL:
-        _POOL.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="gtsam-schwarz-side"))
-    return _POOL[0]
+    """The process's single side thread (created on first use; it blocks while idle)."""
+    return _pool("side", 1)
 
+
+def local_threads() -> ThreadPoolExecutor:
+    """The threads that factorize and solve independent local blocks (CHOLMOD without the GIL)."""
+    return _pool("local", WORKERS)
+
+
+def _pool(name: str, workers: int) -> ThreadPoolExecutor:
+    if name not in _POOLS:
+        _POOLS[name] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix=f"gtsam-schwarz-{name}")
+    return _POOLS[name]
+
+
+def run_all(pool: ThreadPoolExecutor, jobs: list) -> list:
+    """Results of the callables ``jobs`` run on ``pool``, in order (see :func:`wait_all`)."""
+    return wait_all([pool.submit(job) for job in jobs])
+
+
+def wait_all(futures: list) -> list:
+    """The futures' results in order; every one has finished when this returns or raises (the first
+    failure is raised after the others have ended)."""
+    results, error = [], None
+    for f in futures:
+        try:
+            results.append(f.result())
+        except BaseException as exc:  # noqa: BLE001 — re-raised once all have ended
+            results.append(None)
+            error = error or exc
+    if error is not None:
+        raise error
+    return results

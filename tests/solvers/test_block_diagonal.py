@@ -153,3 +153,28 @@ def test_fill_reducing_vertex_order_gives_the_same_operator_and_no_more_fill(pro
         assert np.array_equal(np.sort(new.indices[b]), np.sort(sets.indices[b]))
     nnz = lambda s: sum(int(c[3].column_counts().sum()) for c in s._chunks)  # noqa: E731
     assert nnz(ordered) <= 1.02 * nnz(plain)
+
+
+def test_chunks_on_the_local_threads_give_the_numbers_of_one_thread():
+    """Chunks of subdomains factorized and solved on the local threads (CHOLMOD without the GIL): the
+    same operator, bit for bit, as one chunk after the other; a release and a refactorization too."""
+    from gtsam_schwarz.solvers import BlockDiagonalSolver, cholmod_native
+
+    prob = lawnmower(16, 16, sigma=0.01, seed=0)
+    lin = NativeLinearizer.from_arrays(**prob.arrays)
+    H = sp.csr_matrix(lin.linearize(lin.initial_state()).H + sp.identity(lin.offsets[-1]) * 1e-3)
+    sets = decompose(GraphStructure.from_matrix(H, lin.offsets), 8, "metis", 1).index_sets(True)
+    x = np.random.default_rng(0).standard_normal(H.shape[0])
+    solvers = []
+    for threaded in (True, False):
+        s = BlockDiagonalSolver(sets)
+        s.CHUNK_ENTRIES, s.threaded = 2000, threaded
+        s.update(H)
+        solvers.append(s)
+    threaded, serial = solvers
+    assert len(threaded._chunks) > 2
+    assert all(isinstance(c[3], cholmod_native.SimplicialCholesky) for c in threaded._chunks) == cholmod_native.available()
+    assert np.array_equal(threaded.matvec(x), serial.matvec(x))
+    threaded.release()
+    threaded.update(H * 2.0)
+    assert np.allclose(threaded.matvec(x), serial.matvec(x) / 2.0, rtol=1e-12, atol=0)
