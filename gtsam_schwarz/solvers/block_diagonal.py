@@ -12,7 +12,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..util import vertex_dofs
-from ..util.threads import local_threads, run_all, wait_all
+from ..util.threads import local_threads, run_all
 from .base import SingularLocalMatrixError
 from .cost import pattern_ordering, vertex_pattern
 from .gather import Gather, block_positions, vertex_level, sharing_vertex_level
@@ -145,7 +145,7 @@ class BlockDiagonalSolver:
     """
 
     DENSE_MAX = 12
-    threaded = True  # simplicial chunks factorized and solved on the local threads (util.threads)
+    threaded = True  # simplicial chunks solved on the local threads (util.threads)
     CHUNK_ENTRIES = 8_000_000  # entries of A in the rows of one chunk (an upper bound of its block's)
 
     def __init__(self, sets, A: sp.spmatrix | None = None):
@@ -229,28 +229,24 @@ class BlockDiagonalSolver:
         if self._chunks is None:
             self.order_vertices(A)
             self._chunks = self._plan_chunks(A)
-        threads = self.threaded and len(self._chunks) > 1 and cholmod_native.available()
-        jobs = []
         with sharing_vertex_level():   # the chunks share A's vertex level while finding positions
-            for chunk in self._chunks:
+            for chunk in self._chunks:   # one after the other: one chunk's gathered matrix at a time
                 _, _, gather, factor = chunk
                 pattern = gather.pattern
                 B = gather(A)
                 fresh = factor is None or gather.pattern is not pattern
                 if fresh:
                     chunk[3] = None
-                if threads:   # factorized on the local threads while this one gathers the next chunk
-                    jobs.append(local_threads().submit(self._factorize, chunk, B, fresh))
-                else:
-                    self._factorize(chunk, B, fresh)
+                self._factorize(chunk, B, fresh)
                 del B
-        wait_all(jobs)
         return self
 
     def _factorize(self, chunk: list, B: sp.csr_matrix, fresh: bool) -> None:
         """Chunk's factor of B: refactorized, or (``fresh``) analysed first. Simplicial factors (CHOLMOD's
-        choice for such blocks) go through :mod:`.cholmod_native` where it works, without the GIL;
-        the others through scikit-sparse."""
+        choice for such blocks) go through :mod:`.cholmod_native` where it works, so that
+        :meth:`matvec` can solve the chunks on the local threads; the others through scikit-sparse.
+        (Factorizing one chunk on a thread while the next is gathered held two chunks' matrices at
+        once: lawnmower 600x600, +230 MB at the peak, and no faster.)"""
         if not fresh:
             chunk[3].refactor(B)
             return
