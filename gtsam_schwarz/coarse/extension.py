@@ -14,7 +14,10 @@ import scipy.sparse as sp
 
 from ..dd.decomposition import Decomposition
 from ..dd.interface import Interface
-from ..solvers import SparseCholesky, Submatrix, factorize
+from ..solvers import SparseCholesky, Submatrix
+from ..solvers.cholmod_native import SimplicialCholesky
+from ..solvers.factory import factorize_local
+from ..util.threads import local_threads
 from ..solvers.gather import pattern_of, sharing_vertex_level
 from ..util import vertex_dofs
 from ..util.sparse import row_block, row_entries
@@ -109,15 +112,21 @@ class _Group:
         A_II = self.A_II(A)
         same = pattern is not None and (self.A_II.pattern is pattern or pattern.matches(A))
         self._released = None
-        if isinstance(self.factor, SparseCholesky) and same:
+        if isinstance(self.factor, (SparseCholesky, SimplicialCholesky)) and same:
             self.factor.refactor(A_II)  # same pattern: numbers only (the analysis is kept by release)
-        else:
-            self.factor = factorize(A_II, "the interior matrix A_II", self.ordering)
+        else:   # simplicial where CHOLMOD would choose it: its solves then run on the local threads
+            self.factor = factorize_local(A_II, "the interior matrix A_II", natural=self.ordering == "natural")
+
+    def solve(self, B: np.ndarray) -> np.ndarray:
+        """A_II⁻¹ B (F-ordered n_I × k), the columns split over the local threads where the factor allows."""
+        if isinstance(self.factor, SimplicialCholesky):
+            return self.factor.solve(B, local_threads())
+        return self.factor(B)
 
     def release(self) -> None:
         """Drop the factor's numbers and the gathers' positions; keep the symbolic analysis."""
         self._released = self.A_II.pattern
-        if isinstance(self.factor, SparseCholesky):
+        if isinstance(self.factor, (SparseCholesky, SimplicialCholesky)):
             self.factor.release_numeric()
         else:
             self.factor = None
@@ -285,7 +294,7 @@ class HarmonicExtension:
                 keep = (target >= k0 * nI) & (target < k1 * nI)
                 B[target[keep] - k0 * nI] = values[keep]
                 del keep
-            X = group.factor(B.reshape(k1 - k0, nI).T)  # F-ordered nI × (k1 − k0)
+            X = group.solve(B.reshape(k1 - k0, nI).T)  # F-ordered nI × (k1 − k0)
             del B
             if k0 == 0 and k1 == K:
                 _rows_to_csr(X, k_row, out)  # row-major prefix of every row: Φ_I's CSR order

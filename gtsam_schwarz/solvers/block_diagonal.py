@@ -17,6 +17,7 @@ from .base import SingularLocalMatrixError
 from .cost import pattern_ordering, vertex_pattern
 from .gather import Gather, block_positions, vertex_level, sharing_vertex_level
 from . import cholmod_native
+from .factory import factorize_local
 from .sparse import SparseCholesky
 
 
@@ -247,17 +248,10 @@ class BlockDiagonalSolver:
         :meth:`matvec` can solve the chunks on the local threads; the others through scikit-sparse.
         (Factorizing one chunk on a thread while the next is gathered held two chunks' matrices at
         once: lawnmower 600x600, +230 MB at the peak, and no faster.)"""
-        if not fresh:
+        if fresh:
+            chunk[3] = factorize_local(B, "a subdomain matrix", natural=bool(self.ordered), dense=False)
+        else:
             chunk[3].refactor(B)
-            return
-        natural = bool(self.ordered)
-        if cholmod_native.available():
-            factor = cholmod_native.SimplicialCholesky(B, "a subdomain matrix", natural=natural, factor=False)
-            if not factor.supernodal_preferred():
-                chunk[3] = factor.refactor(B)
-                return
-            del factor
-        chunk[3] = SparseCholesky(B, "a subdomain matrix", ordering="natural" if natural else None)
 
     def release(self) -> None:
         """Drop the numeric factorizations (to bound the memory); the next :meth:`update` refactorizes

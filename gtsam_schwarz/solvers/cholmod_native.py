@@ -18,6 +18,7 @@ import threading
 import numpy as np
 import scipy.sparse as sp
 
+from ..util.threads import WORKERS
 from . import cholmod_symbolic as _sym
 from .base import SingularLocalMatrixError
 
@@ -167,10 +168,25 @@ class SimplicialCholesky:
             raise SingularLocalMatrixError(f"{self.what} is not positive definite (pivot {head.minor})")
         return self
 
-    def solve(self, b: np.ndarray) -> np.ndarray:
-        """x with K x = b (b: (n,) or (n, k))."""
+    def solve(self, b: np.ndarray, pool=None) -> np.ndarray:
+        """x with K x = b (b: (n,) or (n, k)); ``pool`` (:func:`~gtsam_schwarz.util.threads.local_threads`):
+        the columns of b in as many blocks as it has workers, solved side by side (the same numbers)."""
         b = np.asarray(b, dtype=np.float64)
         B = np.asfortranarray(b.reshape(self.n, -1))
+        out = np.empty(B.shape, order="F")
+        k = B.shape[1]
+        parts = min(k, WORKERS) if pool is not None else 1
+        if parts > 1:
+            cuts = np.linspace(0, k, parts + 1).astype(int)
+            wait = [pool.submit(self._solve_into, B[:, c0:c1], out[:, c0:c1]) for c0, c1 in zip(cuts[:-1], cuts[1:])]
+            for w in wait:
+                w.result()
+        else:
+            self._solve_into(B, out)
+        return out.reshape(b.shape, order="F") if b.ndim > 1 else out.reshape(-1)
+
+    def _solve_into(self, B: np.ndarray, out: np.ndarray) -> None:
+        """out = K⁻¹ B for F-contiguous (n, k) blocks B and out."""
         D = _Dense(self.n, B.shape[1], B.size, self.n, B.ctypes.data, None, _REAL, 0)
         lib = _library()
         common = _common(self.natural)
@@ -178,10 +194,10 @@ class SimplicialCholesky:
         if not X:
             raise MemoryError(f"CHOLMOD could not solve with {self.what}")
         try:
-            out = np.ctypeslib.as_array((ctypes.c_double * B.size).from_address(X.contents.x)).copy()
+            x = np.ctypeslib.as_array((ctypes.c_double * B.size).from_address(X.contents.x))
+            out[...] = x.reshape(B.shape, order="F")
         finally:
             lib.cholmod_free_dense(ctypes.byref(X), common)
-        return out.reshape(b.shape, order="F") if b.ndim > 1 else out
 
     __call__ = solve
 

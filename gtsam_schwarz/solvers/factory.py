@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from . import cholmod_native
 from .base import LocalSolver
 from .dense import DenseCholesky
 from .sparse import SparseCholesky
@@ -29,3 +30,19 @@ def factorize(K: sp.spmatrix, what: str = "local matrix", ordering: str | None =
     if n <= DENSE_FACTOR_MAX and K.nnz >= 0.1 * n * n:
         return DenseCholesky(K, what)
     return SparseCholesky(K, what, ordering=ordering)
+
+
+def factorize_local(K: sp.spmatrix, what: str = "local matrix", natural: bool = False,
+                    dense: bool = True) -> LocalSolver:
+    """:func:`factorize` (``dense=False``: never a dense factor), except that a factor CHOLMOD would
+    make simplicial goes through :mod:`.cholmod_native` where it works: its solves hold no GIL, so
+    they can run on the local threads. ``natural``: K is already in a fill-reducing order."""
+    n = K.shape[0]
+    if n == 0 or (dense and n <= DENSE_FACTOR_MAX and K.nnz >= 0.1 * n * n):
+        return factorize(K, what)
+    if cholmod_native.available():
+        factor = cholmod_native.SimplicialCholesky(K, what, natural=natural, factor=False)
+        if not factor.supernodal_preferred():
+            return factor.refactor(K)
+        del factor
+    return SparseCholesky(K, what, ordering="natural" if natural else None)
