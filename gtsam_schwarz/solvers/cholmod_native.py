@@ -20,7 +20,8 @@ import scipy.sparse as sp
 
 from ..util.threads import WORKERS
 from . import cholmod_symbolic as _sym
-from .base import SingularLocalMatrixError
+from .base import SingularLocalMatrixError, check_finite
+from .sparse import _csc
 
 _COMMON_BYTES = 1 << 20
 _SIMPLICIAL, _NATURAL, _PATTERN, _REAL, _A = 0, 0, 0, 1, 0   # CHOLMOD_SIMPLICIAL, _NATURAL, _PATTERN, _REAL, _A
@@ -120,7 +121,7 @@ class SimplicialCholesky:
 
     def __init__(self, K: sp.spmatrix, what: str = "local matrix", natural: bool = False, factor: bool = True):
         self.what, self.natural = what, natural
-        K = sp.csc_matrix(K)
+        K = _csc(K)   # a symmetric CSR matrix's transpose: its CSC arrays, no conversion
         self.n = K.shape[0]
         if self.n >= 2**31 - 1 or K.nnz >= 2**31 - 1:
             raise ValueError("CHOLMOD's 32-bit interface cannot hold this matrix")
@@ -155,9 +156,8 @@ class SimplicialCholesky:
         return bool(np.sum(counts * counts) >= self.SUPERNODAL_SWITCH * max(np.sum(counts), 1.0))
 
     def refactor(self, K: sp.spmatrix) -> "SimplicialCholesky":
-        K = sp.csc_matrix(K)
-        if not np.all(np.isfinite(K.data)):
-            raise SingularLocalMatrixError(f"{self.what} has non-finite entries")
+        K = _csc(K)
+        check_finite(K, self.what)
         A, held = _matrix(K)
         lib = _library()
         lib.cholmod_factorize(ctypes.byref(A), self._L, _common(self.natural))
