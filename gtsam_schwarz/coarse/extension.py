@@ -17,10 +17,10 @@ from ..dd.interface import Interface
 from ..solvers import SparseCholesky, Submatrix
 from ..solvers.cholmod_native import SimplicialCholesky
 from ..solvers.factory import factorize_local
-from ..util.threads import local_threads
 from ..solvers.gather import pattern_of, sharing_vertex_level
 from ..util import vertex_dofs
 from ..util.sparse import row_block, row_entries
+from ..util.threads import local_threads
 
 
 class CoarseBasis:

@@ -13,11 +13,11 @@ import scipy.sparse as sp
 
 from ..util import vertex_dofs
 from ..util.threads import local_threads, run_all
+from . import cholmod_native
 from .base import SingularLocalMatrixError
 from .cost import pattern_ordering, vertex_pattern
-from .gather import Gather, block_positions, vertex_level, sharing_vertex_level
-from . import cholmod_native
 from .factory import factorize_local
+from .gather import Gather, block_positions, vertex_level, sharing_vertex_level
 from .sparse import SparseCholesky
 
 

@@ -18,7 +18,7 @@ import threading
 import numpy as np
 import scipy.sparse as sp
 
-from ..util.threads import WORKERS
+from ..util.threads import WORKERS, run_all
 from . import cholmod_symbolic as _sym
 from .base import SingularLocalMatrixError, check_finite
 from .sparse import _csc
@@ -178,9 +178,8 @@ class SimplicialCholesky:
         parts = min(k, WORKERS) if pool is not None else 1
         if parts > 1:
             cuts = np.linspace(0, k, parts + 1).astype(int)
-            wait = [pool.submit(self._solve_into, B[:, c0:c1], out[:, c0:c1]) for c0, c1 in zip(cuts[:-1], cuts[1:])]
-            for w in wait:
-                w.result()
+            run_all(pool, [lambda c0=c0, c1=c1: self._solve_into(B[:, c0:c1], out[:, c0:c1])
+                           for c0, c1 in zip(cuts[:-1], cuts[1:])])
         else:
             self._solve_into(B, out)
         return out.reshape(b.shape, order="F") if b.ndim > 1 else out.reshape(-1)

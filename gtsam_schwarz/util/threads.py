@@ -1,8 +1,8 @@
-"""One worker thread beside the main one, for work that runs without Python's GIL.
+"""Worker threads for work that runs without Python's GIL: one side thread, two local threads.
 
-scipy's sparse products release the GIL, CHOLMOD's calls through scikit-sparse hold it: a coarse
-correction's Φᵀ / Φ products can run on this thread while the calling thread solves the subdomains
-(two cores, the same numbers). Work that holds the GIL gains nothing here: A_0's assembly beside the
+scipy's sparse products release the GIL, CHOLMOD's calls through scikit-sparse hold it (through
+``solvers.cholmod_native`` they do not): a coarse correction's Φᵀ / Φ products run on the side thread
+while the local threads solve the subdomains (two cores, the same numbers). Work that holds the GIL gains nothing here: A_0's assembly beside the
 subdomain factorizations slowed both (lawnmower 600x600: 0.62 + 1.14 s one after the other, 1.49 and
 1.68 s side by side)."""
 
@@ -31,15 +31,10 @@ def _pool(name: str, workers: int) -> ThreadPoolExecutor:
 
 
 def run_all(pool: ThreadPoolExecutor, jobs: list) -> list:
-    """Results of the callables ``jobs`` run on ``pool``, in order (see :func:`wait_all`)."""
-    return wait_all([pool.submit(job) for job in jobs])
-
-
-def wait_all(futures: list) -> list:
-    """The futures' results in order; every one has finished when this returns or raises (the first
-    failure is raised after the others have ended)."""
+    """Results of the callables ``jobs`` run on ``pool``, in order; every job has finished when this
+    returns or raises (the first failure is raised after the others have ended)."""
     results, error = [], None
-    for f in futures:
+    for f in [pool.submit(job) for job in jobs]:
         try:
             results.append(f.result())
         except BaseException as exc:  # noqa: BLE001 — re-raised once all have ended
