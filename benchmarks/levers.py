@@ -25,6 +25,7 @@ VARIANTS = (
     ("no symbolic reuse (rebuild M from scratch)", {"reuse_symbolic": False}, {}),
     ("no lagged preconditioner", {"lagged_preconditioner": False}, {}),
     ("BLAS threads not limited", {"blas_threads": None}, {}),
+    ("CHOLMOD's OpenMP at its own 4 threads", {}, {"OMP_THREAD_LIMIT": "4"}),
     ("glibc allocator defaults", {}, {"GTSAM_SCHWARZ_MALLOPT": "0"}),
     ("inexact Newton (Eisenstat-Walker) on", {"forcing": "eisenstat-walker"}, {}),
     ("partition: segments", {"partition": "segments"}, {}),

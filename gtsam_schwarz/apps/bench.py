@@ -435,7 +435,9 @@ def _header(report: dict) -> list[str]:
             + (f"; fresh memory's first touch {m['first_touch_ms_per_mib']:g} ms/MiB (64 MiB, before the runs)"
                if m.get("first_touch_ms_per_mib") is not None else ""),
             f"- versions: Python {m['python']}, gtsam {m['gtsam']}, numpy {m['numpy']}, scipy {m['scipy']}, "
-            f"gtsam-schwarz {m['gtsam_schwarz']}; local factorizations: {m.get('sparse_backend', '?')}",
+            f"gtsam-schwarz {m['gtsam_schwarz']}; local factorizations: {m.get('sparse_backend', '?')}"
+            + (f"; OpenMP thread limit (CHOLMOD's supernodal regions) {m['openmp_thread_limit']}"
+               if m.get("openmp_thread_limit") is not None else ""),
             f"- ours: `SchwarzParams({', '.join(f'{k}={v!r}' for k, v in report['params'].items())})`; "
             + "; ".join(f"{name}: the same with preconditioner={opts['preconditioner']!r}"
                         for name, opts in OURS.items() if opts) + "; "
@@ -539,7 +541,7 @@ def machine() -> dict:
             "memory_gib": round(int(mem[0]) / 2**20, 1) if mem and mem[0].isdigit() else None,
             "platform": platform.platform(), "python": platform.python_version(), "gtsam": _version("gtsam"),
             "numpy": _version("numpy"), "scipy": _version("scipy"), "gtsam_schwarz": _version("gtsam-schwarz"),
-            "sparse_backend": _sparse_backend(), "g2opy": peers.g2o_version(),
+            "sparse_backend": _sparse_backend(), "openmp_thread_limit": _openmp_limit(), "g2opy": peers.g2o_version(),
             "first_touch_ms_per_mib": first_touch_ms_per_mib()}
 
 
@@ -552,6 +554,13 @@ def first_touch_ms_per_mib(mib: int = 64) -> float:
     seconds = time.perf_counter() - t
     del a
     return round(1e3 * seconds / mib, 3)
+
+
+def _openmp_limit() -> int | None:
+    """OpenMP's thread limit in our processes (CHOLMOD's supernodal regions; None without libgomp)."""
+    from ..solvers.openmp import limit_threads
+
+    return limit_threads()
 
 
 def _sparse_backend() -> str:

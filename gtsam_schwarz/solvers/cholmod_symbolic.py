@@ -17,6 +17,8 @@ import ctypes.util
 import numpy as np
 import scipy.sparse as sp
 
+from .openmp import limit_threads
+
 KNOWN_MAJOR_VERSIONS = (3, 4, 5)  # cholmod_sparse and the head of cholmod_factor are the same in these
 _COMMON_BYTES = 1 << 20  # room for cholmod_common (a few KiB in these versions)
 
@@ -42,6 +44,7 @@ _lib: list = []  # [the loaded library or None], once
 def _library():
     if not _lib:
         lib = None
+        limit_threads()
         try:
             name = ctypes.util.find_library("cholmod")
             if name:

@@ -10,7 +10,9 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .base import SingularLocalMatrixError, check_finite, register_solver
+from .openmp import limit_threads
 
+limit_threads()  # before CHOLMOD (and its OpenMP runtime) loads: one thread, not CHOLMOD's four
 try:  # CHOLMOD (SuiteSparse) through scikit-sparse: supernodal, reusable symbolic analysis
     from sksparse.cholmod import CholmodError as _CholmodError
     from sksparse.cholmod import analyze as _cholmod_analyze
