@@ -16,7 +16,7 @@ MOVED = {
     "krylov": "krylov", "preconditioners": "schwarz", "optimizer": "nonlinear",
     "cli": "apps.cli", "commands": "apps.commands", "bench": "apps.bench", "paper": "apps.paper",
     "validation": "apps.validation", "compare": "apps.compare", "report": "apps.report",
-    "plots": "apps.plots", "solve_plots": "apps.solve_plots", "runtime": "apps.runtime",
+    "plots": "apps.plots", "solve_plots": "apps.solve_plots", "runtime": "util.heap",
 }
 # names that are packages now but were modules with the same name: no alias needed
 _SAME = {"problems", "io", "coarse", "krylov"}

@@ -230,7 +230,7 @@ def solve(case: Case, solver: str, overrides: dict, datasets: pathlib.Path) -> d
 
 def worker_main(argv=None) -> int:
     """Child entry point: solve one (case, solver) and write the result as JSON to ``--result``."""
-    from .runtime import tune_allocator
+    from ..util.heap import tune_allocator
     tune_allocator()
     ap = argparse.ArgumentParser(prog="python -m gtsam_schwarz.apps.bench", description="one benchmark run (a child)")
     ap.add_argument("--case", required=True, choices=sorted(ALL_CASES))

@@ -17,7 +17,7 @@ from .bench import add_bench
 from .demo import add_demo
 from ..io.jsonout import json_safe
 from ..solvers.memory import InsufficientMemoryError
-from .runtime import tune_allocator
+from ..util.heap import tune_allocator
 from .commands import UsageError, add_all, make_out_dir, nonnegative_int, positive_float
 
 DEFAULT_PAPER_OUT = "paper-results"  # in the current folder: never the committed docs/ unless asked

@@ -17,6 +17,7 @@ from ..dd.index_sets import vertex_dofs
 from ..initialization.chordal import blas_limits
 from ..linearization.base import Linearizer, LinearSystem
 from ..util import with_small_pages
+from ..util.heap import populate_ahead
 from .gauge import free_components
 from .hooks import verbose_printer
 from .initialize import chordal_state
@@ -26,6 +27,9 @@ from .params import (DampingParams, LevenbergMarquardtParams, LinearSolverParams
 from .records import IterationRecord
 
 LINEAR_SOLVERS = linear_solver_names()
+# fresh memory a run touches per entry of H, at least (bench children after loading: 72-156 bytes;
+# model problems 72-77, city10000 91, sphere2500 96, lawnmowers 88 (Schwarz) and 126-156 (direct))
+FRESH_BYTES_PER_ENTRY = 64
 
 
 class SchwarzOptimizer:
@@ -48,6 +52,9 @@ class SchwarzOptimizer:
         if linearizer is None:
             linearizer = make_linearizer(graph, initial, self.nonlinear_params.linearization)
         self.linearizer = linearizer
+        pattern = getattr(linearizer, "pattern", None)
+        if pattern is not None:  # faulted in on a helper thread while the start is computed (tuned heap only)
+            populate_ahead(FRESH_BYTES_PER_ENTRY * pattern.nnz)
         self._state = linearizer.state(initial) if initial is not None else linearizer.initial_state()
         self._error = linearizer.error(self._state)
         self.initial_error = self._error
