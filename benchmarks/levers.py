@@ -27,6 +27,7 @@ VARIANTS = (
     ("BLAS threads not limited", {"blas_threads": None}, {}),
     ("CHOLMOD's OpenMP at its own 4 threads", {}, {"OMP_THREAD_LIMIT": "4"}),
     ("glibc allocator defaults", {}, {"GTSAM_SCHWARZ_MALLOPT": "0"}),
+    ("no heap populated ahead", {}, {"GTSAM_SCHWARZ_POPULATE": "0"}),
     ("inexact Newton (Eisenstat-Walker) on", {"forcing": "eisenstat-walker"}, {}),
     ("partition: segments", {"partition": "segments"}, {}),
     ("partition: metis", {"partition": "metis"}, {}),
