@@ -319,8 +319,13 @@ class CostModel:
     ``COARSE_COLUMNS`` right-hand sides, ``CG_ITERATIONS`` iterations.
     """
 
-    FLOP = 7e-10  # small supernodes (flops / nnz(L) below ~90: city10000 and sparser)
-    SUPERNODE = 6e-8  # per entry of L where the supernodes grow with the fill (flops / nnz(L) 90 to 4000)
+    # since CHOLMOD's OpenMP runs one thread (solvers/openmp.py; thirteenth session, its four threads
+    # had made the supernodal factorizations 2-2.5x slower): measured 0.041 s sphere2500, 0.037 s
+    # city10000, 0.051 s lawn100x100, 0.315 s survey8x24x24 (0.38-0.51 of the old rates' prediction)
+    FLOP_SIMPLICIAL = 7e-10  # flops / nnz(L) below CHOLMOD's supernodal switch (40): no OpenMP there
+    SUPERNODAL_FROM = 40
+    FLOP = 3e-10  # small supernodes (flops / nnz(L) below ~70: city10000 and sparser)
+    SUPERNODE = 2.2e-8  # per entry of L where the supernodes grow with the fill (flops / nnz(L) 70 to 4000)
     FLOP_LARGE = 1.5e-11  # the rate of the largest supernodes (3D 32x32x32 and 45x45x45: 1.5e-11, 1.9e-11)
     ENTRY = 1e-8
     SOLVE = 2e-9
@@ -341,10 +346,13 @@ class CostModel:
 
     def factor_seconds(self, flops: float, nnz_L: float) -> float:
         """A numeric factorization. The rate per flop grows with the supernodes, whose size follows
-        c = flops / nnz(L), about as c itself: measured 7.3e-10 s per flop at c = 85 (city10000),
+        c = flops / nnz(L), about as c itself: measured 7.3e-10 s per flop at c = 85 (city10000; before the OpenMP limit, see FLOP),
         1.4e-10 at 450 (lawnmower 300x300), 1.5e-11 at 4400 (3D survey 32x32x32). So from c ≈ 90 the
         time is about ``SUPERNODE``·nnz(L) (2D and 3D, H and the chordal rotation system alike),
-        below at ``FLOP`` per flop, never faster than ``FLOP_LARGE`` per flop; ``ENTRY``·nnz(L) on top."""
+        below at ``FLOP`` per flop, never faster than ``FLOP_LARGE`` per flop; ``ENTRY``·nnz(L) on top.
+        A simplicial factor (c below CHOLMOD's switch, 40) costs ``FLOP_SIMPLICIAL`` per flop."""
+        if flops < self.SUPERNODAL_FROM * nnz_L:
+            return self.ENTRY * nnz_L + self.FLOP_SIMPLICIAL * flops
         return self.ENTRY * nnz_L + max(self.FLOP_LARGE * flops, min(self.FLOP * flops, self.SUPERNODE * nnz_L))
 
     def direct(self, cost) -> float:
