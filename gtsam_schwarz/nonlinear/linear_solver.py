@@ -346,8 +346,9 @@ class CostModel:
 
     def factor_seconds(self, flops: float, nnz_L: float) -> float:
         """A numeric factorization. The rate per flop grows with the supernodes, whose size follows
-        c = flops / nnz(L), about as c itself: measured 7.3e-10 s per flop at c = 85 (city10000; before the OpenMP limit, see FLOP),
-        1.4e-10 at 450 (lawnmower 300x300), 1.5e-11 at 4400 (3D survey 32x32x32). So from c ≈ 90 the
+        c = flops / nnz(L), about as c itself (before the OpenMP limit; the rates since: see ``FLOP``):
+        measured 7.3e-10 s per flop at c = 85 (city10000), 1.4e-10 at 450 (lawnmower 300x300),
+        1.5e-11 at 4400 (3D survey 32x32x32). So from c ≈ 90 the
         time is about ``SUPERNODE``·nnz(L) (2D and 3D, H and the chordal rotation system alike),
         below at ``FLOP`` per flop, never faster than ``FLOP_LARGE`` per flop; ``ENTRY``·nnz(L) on top.
         A simplicial factor (c below CHOLMOD's switch, 40) costs ``FLOP_SIMPLICIAL`` per flop."""
