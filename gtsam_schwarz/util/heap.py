@@ -73,9 +73,9 @@ def populate_ahead(nbytes: float) -> threading.Thread | None:
     then), 3-4 s of a 16 s Schwarz run on 360 000 poses that touches 1.45 GB it never had. The
     block is taken from the heap and freed at once (it stays the heap's free top: tuned allocator,
     never trimmed); ``madvise(MADV_POPULATE_WRITE)`` then faults it in without writing a byte, so
-    the allocations carved from it meanwhile are untouched. None (nothing done) unless
-    :func:`tune_allocator` applied, for less than 16 MiB, while a previous one runs, on kernels
-    before 5.14, or with GTSAM_SCHWARZ_POPULATE=0."""
+    the allocations carved from it meanwhile are untouched. Returns the thread; None (nothing done)
+    unless :func:`tune_allocator` applied, for less than 16 MiB, while a previous one runs, or with
+    GTSAM_SCHWARZ_POPULATE=0. On kernels before 5.14 the thread's first madvise fails and it stops."""
     nbytes = int(nbytes) // _PAGE * _PAGE
     busy = _state["populating"]
     if (not _state["tuned"] or nbytes < (16 << 20) or (busy is not None and busy.is_alive())
