@@ -73,13 +73,14 @@ def populate_ahead(nbytes: float) -> threading.Thread | None:
     then), 3-4 s of a 16 s Schwarz run on 360 000 poses that touches 1.45 GB it never had. The
     block is taken from the heap and freed at once (it stays the heap's free top: tuned allocator,
     never trimmed); ``madvise(MADV_POPULATE_WRITE)`` then faults it in without writing a byte, so
-    the allocations carved from it meanwhile are untouched. Returns the thread; None (nothing done)
-    unless :func:`tune_allocator` applied, for less than 16 MiB, while a previous one runs, or with
-    GTSAM_SCHWARZ_POPULATE=0. On kernels before 5.14 the thread's first madvise fails and it stops."""
+    the allocations carved from it meanwhile are untouched. A request made while an earlier one
+    still runs takes its block now and waits for that thread (one helper at a time: the main thread
+    keeps the other core). Returns the thread; None (nothing done) unless :func:`tune_allocator`
+    applied, for less than 16 MiB, or with GTSAM_SCHWARZ_POPULATE=0. On kernels before 5.14 the
+    thread's first madvise fails and it stops."""
     nbytes = int(nbytes) // _PAGE * _PAGE
-    busy = _state["populating"]
-    if (not _state["tuned"] or nbytes < (16 << 20) or (busy is not None and busy.is_alive())
-            or os.environ.get("GTSAM_SCHWARZ_POPULATE", "1") == "0"):
+    earlier = _state["populating"]
+    if not _state["tuned"] or nbytes < (16 << 20) or os.environ.get("GTSAM_SCHWARZ_POPULATE", "1") == "0":
         return None
     libc = _libc()
     start = libc.malloc(nbytes)
@@ -88,6 +89,8 @@ def populate_ahead(nbytes: float) -> threading.Thread | None:
     libc.free(start)
 
     def populate(begin=(start + _PAGE - 1) // _PAGE * _PAGE, end=(start + nbytes) // _PAGE * _PAGE):
+        if earlier is not None:
+            earlier.join()
         while begin < end:  # ctypes releases the GIL for the call
             size = min(_STEP, end - begin)
             if libc.madvise(begin, size, _MADV_POPULATE_WRITE) != 0:

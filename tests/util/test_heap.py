@@ -16,18 +16,22 @@ faults = lambda: resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 tuned = tune_allocator() if sys.argv[1] == "tuned" else False
 thread = populate_ahead(256 << 20)
 early = np.arange(4 << 20, dtype=np.float64)   # 32 MiB written while the helper may still run
+second = populate_ahead(128 << 20) if sys.argv[2:] == ["twice"] else None  # queued behind the first
+if second is not None:
+    second.join()
+    assert not thread.is_alive()   # it waited for the first
 if thread is not None:
     thread.join()
 before = faults()
 later = np.ones(192 << 17)                      # 192 MiB from the populated heap
 print(json.dumps({"tuned": tuned, "started": thread is not None, "later_faults": faults() - before,
                   "early_intact": bool(np.array_equal(early, np.arange(4 << 20, dtype=np.float64))),
-                  "later_sum": float(later.sum())}))
+                  "later_sum": float(later.sum()), "second": second is not None}))
 """
 
 
-def _probe(mode: str) -> dict:
-    out = subprocess.run([sys.executable, "-c", PROBE, mode], capture_output=True, text=True, check=True,
+def _probe(*mode: str) -> dict:
+    out = subprocess.run([sys.executable, "-c", PROBE, *mode], capture_output=True, text=True, check=True,
                          env={**os.environ, "NUMPY_MADVISE_HUGEPAGE": "0"})
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -39,6 +43,15 @@ def test_populated_heap_needs_no_faults_later_and_keeps_what_was_written():
         pytest.skip("kernel without MADV_POPULATE_WRITE or allocator not tunable here")
     assert r["early_intact"] and r["later_sum"] == float(192 << 17)
     assert r["later_faults"] < 4096   # 192 MiB of fresh pages would be 49 152 faults
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator and madvise: Linux only")
+def test_a_request_while_one_runs_is_queued_behind_it():
+    r = _probe("tuned", "twice")
+    if not r["started"]:
+        pytest.skip("kernel without MADV_POPULATE_WRITE or allocator not tunable here")
+    assert r["second"] and r["early_intact"] and r["later_sum"] == float(192 << 17)
+    assert r["later_faults"] < 4096
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator: Linux only")
