@@ -76,8 +76,12 @@ def _insert_all(values: gtsam.Values, keys: list, poses, kind: str) -> None:
 # fresh memory the construction touches per entry of H (its pattern, gather plan and their
 # temporaries; page faults counted: model problems 24.6-33, lawnmowers 24-36, 3D surveys 19-23,
 # M3500 and sphere2500 20): faulted in on a helper thread meanwhile (tuned heap only; lawnmower
-# 1000x1000: 2.8-4.3 s -> 1.5-1.8 s, the same faults in all)
+# 1000x1000: 2.8-4.3 s -> 1.5-1.8 s, the same faults in all; 600x600 0.76-0.78 -> 0.56-0.59 s;
+# 262 145 poses 0.29-0.33 -> 0.26 s). Below CONSTRUCTION_POPULATE_FROM bytes the construction is over
+# before a helper could get ahead of it (sq128x64: 18 MB, 35 ms), and the optimizer's own request
+# would wait behind it
 CONSTRUCTION_BYTES_PER_ENTRY = 20
+CONSTRUCTION_POPULATE_FROM = 64 << 20
 _TAKE_CHUNK = 1 << 20  # entries of H gathered per np.take (int32 positions become intp a chunk at a time)
 
 
@@ -452,7 +456,9 @@ class NativeLinearizer:
         k3 = kinds.get(6)
         blocks = {d: len(spec[0]) + 2 * (len(spec[1]["j"]) if spec[1] is not None else 0)
                   for d, spec in kinds.items() if spec is not None}   # at most: edges may repeat a pair
-        populate_ahead(CONSTRUCTION_BYTES_PER_ENTRY * sum(d * d * nb for d, nb in blocks.items()))
+        fresh = CONSTRUCTION_BYTES_PER_ENTRY * sum(d * d * nb for d, nb in blocks.items())
+        if fresh >= CONSTRUCTION_POPULATE_FROM:
+            populate_ahead(fresh)
         parts = [(k2[0], 3) if k2 else (np.zeros(0, np.uint64), 3), (k3[0], 6) if k3 else (np.zeros(0, np.uint64), 6)]
         all_keys = np.concatenate([parts[0][0], parts[1][0], other_vars]).astype(np.uint64)
         all_dims = np.concatenate([np.full(len(parts[0][0]), 3), np.full(len(parts[1][0]), 6), other_dims]).astype(np.int64)

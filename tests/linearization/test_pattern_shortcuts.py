@@ -129,3 +129,27 @@ def test_diagonal_positions_read_the_diagonal():
         system = lin.linearize(lin.state(p.initial))
         assert system.diagonal is not None
         assert np.array_equal(system.H.data[system.diagonal], system.H.diagonal())
+
+
+def test_construction_faults_in_fresh_heap_ahead_only_for_large_graphs(monkeypatch):
+    """The construction asks for CONSTRUCTION_BYTES_PER_ENTRY per (estimated) entry of H on a helper
+    thread where that is at least CONSTRUCTION_POPULATE_FROM; small graphs ask for nothing."""
+    import gtsam_schwarz.linearization.native as native
+
+    asked = []
+    monkeypatch.setattr(native, "populate_ahead", lambda nbytes: asked.append(nbytes))
+
+    def chain(n):
+        keys = np.arange(n)
+        poses = np.column_stack([keys.astype(float), np.zeros(n), np.zeros(n)])
+        edges = np.column_stack([keys[:-1], keys[1:]])
+        z = np.tile([1.0, 0.0, 0.0], (n - 1, 1))
+        return native.NativeLinearizer.from_arrays("pose2", keys, poses, edges, z, information=np.eye(3))
+
+    lin = chain(1000)
+    assert asked == []
+    n = 140_000
+    lin = chain(n)
+    expected = native.CONSTRUCTION_BYTES_PER_ENTRY * 9 * (n + 2 * (n - 1))
+    assert asked == [expected] and expected >= native.CONSTRUCTION_POPULATE_FROM
+    assert lin.pattern.nnz == 9 * (n + 2 * (n - 1))   # the estimate is exact for a graph without repeated pairs
