@@ -76,7 +76,7 @@ def _insert_all(values: gtsam.Values, keys: list, poses, kind: str) -> None:
 # fresh memory the construction touches per entry of H (its pattern, gather plan and their
 # temporaries; page faults counted: model problems 24.6-33, lawnmowers 24-36, 3D surveys 19-23,
 # M3500 and sphere2500 20): faulted in on a helper thread meanwhile (tuned heap only; lawnmower
-# 1000x1000: 2.8-4.3 s -> 1.5-1.8 s, the same faults in all; 600x600 0.76-0.78 -> 0.56-0.59 s;
+# 1000x1000: 2.6-4.4 s -> 1.8-2.6 s, medians 3.6 -> 2.1 s, the same faults; 600x600 0.76-0.78 -> 0.56-0.59 s;
 # 262 145 poses 0.29-0.33 -> 0.26 s). Below CONSTRUCTION_POPULATE_FROM bytes the construction is over
 # before a helper could get ahead of it (sq128x64: 18 MB, 35 ms), and the optimizer's own request
 # would wait behind it
