@@ -53,6 +53,91 @@ class CoarseBasis:
         """Φᵀ x (through the CSC view of the local rows)."""
         return self.local.T @ x[self.order]
 
+    def vertex_rows(self, d: int) -> np.ndarray | None:
+        """The vertex of every block of ``d`` consecutive local rows, or None where the local rows
+        do not come in whole vertices of ``d`` dofs each (global dofs d·v … d·v + d − 1)."""
+        o = self.order
+        if d < 1 or len(o) % d:
+            return None
+        o = o.reshape(-1, d)
+        if not (np.all(o[:, 0] % d == 0) and np.all(o == o[:, :1] + np.arange(d))):
+            return None
+        return o[:, 0] // d
+
+    TRANSFORM_CHUNK = 1 << 21  # entries of Φ per step of transform_vertex_rows (its temporaries)
+
+    def transform_vertex_rows(self, T: np.ndarray) -> None:
+        """Φ ← diag(T_1, …, T_m) Φ in place, T (m, d, d) for the vertices of :meth:`vertex_rows`
+        (its storage and pattern kept: an entry a row of a vertex lacks is zero in the product when
+        every row's pattern contains those of the rows its T mixes in, as for rigid modes). Vertices
+        whose d rows share one pattern are multiplied as dense d × K blocks; the others (interface
+        rows with structural zeros) entry by entry, their sources found by search."""
+        L = self.local
+        d = T.shape[1]
+        m = len(T)
+        if not L.has_sorted_indices:
+            L.sort_indices()
+        indptr = L.indptr.astype(np.int64)
+        lengths = np.diff(indptr).reshape(m, d)
+        start = indptr[:-1:d]   # first entry of every vertex
+        uniform = self._uniform_vertices(lengths, start)
+        data = L.data
+        K = lengths[:, 0]
+        for k in np.unique(K[uniform]):  # the distinct row lengths (a few dozen at most)
+            if k == 0:
+                continue
+            verts = np.flatnonzero(uniform & (K == k))
+            step = max(1, self.TRANSFORM_CHUNK // (d * int(k)))
+            for c0 in range(0, len(verts), step):   # blocks of vertices (bounded temporaries)
+                v = verts[c0:c0 + step]
+                at = start[v, None] + np.arange(d * int(k))
+                data[at] = np.matmul(T[v], data[at].reshape(len(v), d, int(k))).reshape(len(v), -1)
+        other = np.flatnonzero(~uniform)
+        if len(other):
+            self._transform_entries(T, other, start, lengths, d)
+
+    def _uniform_vertices(self, lengths: np.ndarray, start: np.ndarray) -> np.ndarray:
+        """Whether the d rows of each vertex have one pattern (same lengths and columns). An
+        extension's interior rows have it by construction (a row holds its subdomain's columns);
+        the others are compared."""
+        indices = self.local.indices
+        d = lengths.shape[1]
+        same = np.all(lengths == lengths[:, :1], axis=1)
+        known = 0 if self.plan is None else self.plan["nI"] // d   # the interior rows' vertex blocks
+        cand = known + np.flatnonzero(same[known:] & (lengths[known:, 0] > 0))
+        K = lengths[cand, 0]
+        first = np.repeat(start[cand], K) + (np.arange(int(K.sum())) - np.repeat(np.cumsum(K) - K, K))
+        bad = np.zeros(len(first), dtype=bool)
+        for i in range(1, d):
+            bad |= indices[first] != indices[first + np.repeat(K, K) * i]
+        owner = np.repeat(np.arange(len(cand)), K)
+        same[cand[np.unique(owner[bad])]] = False
+        return same
+
+    def _transform_entries(self, T, verts, start, lengths, d) -> None:
+        """The general case of :meth:`transform_vertex_rows` for the rows of ``verts``: every entry
+        (v, i, c) ← Σ_k T_v[i, k] Φ[(v, k), c], the entry of row k in column c found by a search of
+        the sorted (row, column) keys (0 where row k has no entry there)."""
+        L = self.local
+        data, indices, nc = L.data, L.indices, max(L.shape[1], 1)
+        n_v = lengths[verts].sum(axis=1)
+        pos = np.repeat(start[verts], n_v) + (np.arange(int(n_v.sum())) - np.repeat(np.cumsum(n_v) - n_v, n_v))
+        row = np.searchsorted(L.indptr, pos, side="right") - 1
+        key = row.astype(np.int64) * nc + indices[pos]
+        vertex, i = np.divmod(row, d)
+        old = data[pos]
+        new = T[vertex, i, i] * old   # k = i: the entry itself
+        mixes = np.any(T != 0.0, axis=0)   # (i, k) pairs that T mixes anywhere
+        for k in range(d):
+            rows_k = np.flatnonzero(mixes[:, k] & (np.arange(d) != k))
+            sel = np.flatnonzero(np.isin(i, rows_k))
+            if not len(sel):
+                continue
+            want = (vertex[sel].astype(np.int64) * d + k) * nc + indices[pos[sel]]
+            at = np.minimum(np.searchsorted(key, want), len(key) - 1)
+            new[sel] += np.where(key[at] == want, T[vertex[sel], i[sel], k] * old[at], 0.0)
+        data[pos] = new
+
     def tocsr(self) -> sp.csr_matrix:
         """Φ in global row order (a copy: for tests, plots and other back-ends)."""
         inverse = np.empty_like(self.order)

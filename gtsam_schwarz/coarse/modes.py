@@ -48,6 +48,31 @@ def rigid_modes(geometry: VertexGeometry, vertices: np.ndarray, centers: np.ndar
     return modes if rotation else modes[:, :, :3]
 
 
+def rigid_transport(old: VertexGeometry, new: VertexGeometry, vertices: np.ndarray) -> np.ndarray:
+    """(len(vertices), dim, dim) maps T_v = Ad(X_new⁻¹ X_old) taking a rigid motion's tangent
+    coordinates at each vertex's old pose to those at its new pose: T_v · rigid_modes(old) =
+    rigid_modes(new) about the same centers (the modes are M_v = Ad(X_v⁻¹) times a per-center
+    constant, :func:`rigid_modes`). Pose2: [[R_nᵀR_o, R_nᵀJ(x_n − x_o)], [0, 1]]; Pose3 (ω, v):
+    [[R_nᵀR_o, 0], [−R_nᵀ[x_n − x_o]×R_o, R_nᵀR_o]]."""
+    Rn_t = np.swapaxes(new.rotations[vertices], 1, 2)
+    R = Rn_t @ old.rotations[vertices]
+    dx = new.positions[vertices] - old.positions[vertices]
+    m = len(vertices)
+    if new.d == 2:
+        T = np.zeros((m, 3, 3))
+        T[:, :2, :2] = R
+        T[:, :2, 2] = np.einsum("mij,mj->mi", Rn_t, np.stack([-dx[:, 1], dx[:, 0]], axis=1))
+        T[:, 2, 2] = 1.0
+        return T
+    cross = np.zeros((m, 3, 3))  # −[dx]×
+    cross[:, 0, 1], cross[:, 0, 2], cross[:, 1, 2] = dx[:, 2], -dx[:, 1], dx[:, 0]
+    cross[:, 1, 0], cross[:, 2, 0], cross[:, 2, 1] = -dx[:, 2], dx[:, 1], -dx[:, 0]
+    T = np.zeros((m, 6, 6))
+    T[:, :3, :3] = T[:, 3:, 3:] = R
+    T[:, 3:, :3] = Rn_t @ cross @ old.rotations[vertices]
+    return T
+
+
 def rigid_mode_pattern(d: int, rotation: bool) -> np.ndarray:
     """(dim, n_modes) mask of the entries of :func:`rigid_modes` that are not zero by construction
     (a translation does not move the rotation coordinates); the others are nonzero for generic poses."""

@@ -178,6 +178,7 @@ class PreconditionedCG(LinearSolver):
         self._change = None  # EntryChange from the matrix of the last build (None: unknown)
         self._subdomain_change = None  # EntryChange from the matrix the subdomains were last factorized for
         self._subdomains_kept = False  # the last build kept earlier subdomain factorizations
+        self._transported = False  # the last build carried the coarse level to new poses (TwoLevelSchwarz.transport)
 
     def n_subdomains(self) -> int:
         p = self.params
@@ -204,8 +205,15 @@ class PreconditionedCG(LinearSolver):
     def moved(self, step_max: float) -> None:
         self._moved += step_max
         release = getattr(self.operator, "release", None)
-        if release is not None and self._lag_cap() is None:  # the next solve rebuilds: drop what it replaces now
-            release()
+        if release is not None and self._lag_cap() is None and not self._may_transport():
+            release()  # the next solve rebuilds: drop what it replaces now
+
+    def _may_transport(self) -> bool:
+        """Whether the next solve may carry the coarse level to the new poses (and keep the subdomain
+        factorizations): then they are kept until that solve's test of H's change."""
+        M = self.operator
+        return (hasattr(M, "transport") and self.params.transport_coarse and self.params.lagged_preconditioner
+                and self._subdomain_change is not None and M.subdomains_factored and M.coarse is not None)
 
     def release(self) -> None:
         release = getattr(self.operator, "release", None)
@@ -260,8 +268,12 @@ class PreconditionedCG(LinearSolver):
         keep = (not subdomains and p.lagged_preconditioner and self._subdomain_change is not None
                 and getattr(M, "subdomains_factored", False) and self._subdomain_change(H) <= p.subdomain_lag_change)
         geometry = geometry() if M.uses_geometry else None
-        M = M.update_coarse(H, geometry) if keep else M.update(H, geometry)
-        self._subdomains_kept = keep
+        transport = keep and p.transport_coarse and getattr(M, "can_transport", lambda g: False)(geometry)
+        if transport:
+            M = M.transport(H, geometry)
+        else:
+            M = M.update_coarse(H, geometry) if keep else M.update(H, geometry)
+        self._subdomains_kept, self._transported = keep, transport
         if p.lagged_preconditioner:
             self._change = EntryChange(H)
             if not keep and hasattr(M, "update_coarse"):
@@ -280,6 +292,7 @@ class PreconditionedCG(LinearSolver):
         reference = self._cg_after_build
         M = self.preconditioner(H, geometry, lag=lagged)
         kept = self._subdomains_kept and not lagged
+        transported = self._transported and not lagged
         if kept and reference is not None:  # earlier subdomain factors: the lagged M's cap
             cap = int(p.lag_growth * reference) + 2
         setup = time.perf_counter() - t0
@@ -288,12 +301,12 @@ class PreconditionedCG(LinearSolver):
         iterations, residuals = info.iterations, list(info.residuals)
         if cap is not None and not (info.converged or info.decrement_stop):  # stale: rebuild for H, continue from x
             t2 = time.perf_counter()
-            if kept:  # the coarse level is H's already: refactorize the subdomains
+            if kept and not transported:  # the coarse level is H's already: refactorize the subdomains
                 M = M.refactor_subdomains(H)
                 self._subdomain_change = self._change
             else:
                 M = self.preconditioner(H, geometry, subdomains=True)
-            kept = self._subdomains_kept = False
+            kept = self._subdomains_kept = transported = self._transported = False
             setup += time.perf_counter() - t2
             x, info = pcg(H, rhs, M, tol=tol, maxiter=p.cg_max_iterations, x0=x, **decrement)
             iterations += info.iterations
@@ -305,7 +318,8 @@ class PreconditionedCG(LinearSolver):
                            decrement_stop=info.decrement_stop, decrement_bound=info.decrement_bound,
                            lambda_min=info.lambda_min, lambda_max=info.lambda_max,
                            residuals=residuals, tolerance=tol, setup_seconds=setup,
-                           coarse_size=M.coarse_size, rebuilt=self._rebuilt, lagged=lagged, subdomains_kept=kept)
+                           coarse_size=M.coarse_size, rebuilt=self._rebuilt, lagged=lagged, subdomains_kept=kept,
+                           coarse_transported=transported)
 
 
 class CostModel:

@@ -217,6 +217,7 @@ class SchwarzOptimizer:
             coarse_size=result.coarse_size, preconditioner_rebuilt=result.rebuilt,
             preconditioner_lagged=result.lagged, cg_residuals=result.residuals,
             subdomains_kept=bool(getattr(result, "subdomains_kept", False)),
+            coarse_transported=bool(getattr(result, "coarse_transported", False)),
             decrement_stop=bool(getattr(result, "decrement_stop", False)),
             decrement_bound=float(getattr(result, "decrement_bound", float("nan"))),
             seconds={"linearize": seconds.get("linearize", 0.0), "export": seconds.get("export", 0.0),

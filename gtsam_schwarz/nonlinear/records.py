@@ -26,6 +26,7 @@ class SolveResult:
     rebuilt: bool = True  # the preconditioner's numbers were recomputed for this matrix
     lagged: bool = False  # CG started with the previous preconditioner (lagged)
     subdomains_kept: bool = False  # rebuilt with the subdomain factorizations of an earlier build (coarse level only)
+    coarse_transported: bool = False  # the coarse level carried to the new poses (Φ ← diag(T_v) Φ, A_0 kept), not rebuilt
     decrement_stop: bool = False  # CG stopped early: the exact step would lower the model by < decrement_tol
     decrement_bound: float = float("nan")  # that bound on the exact step's model decrease
 
@@ -54,6 +55,7 @@ class IterationRecord(Mapping):
     preconditioner_lagged: bool
     cg_residuals: list
     subdomains_kept: bool = False  # rebuilt with the subdomain factorizations of an earlier build (coarse level only)
+    coarse_transported: bool = False  # the coarse level carried to the new poses (Φ ← diag(T_v) Φ, A_0 kept), not rebuilt
     accepted: bool = False
     seconds: dict = field(default_factory=dict)  # per phase: linearize, export, setup, cg, update
     decrement_stop: bool = False  # CG stopped once the exact step's model decrease was bounded below tolerance

@@ -150,7 +150,8 @@ def distributed_cases(comm, loops: int, points: int) -> list:
                          ("gtsam_factors", mixed_pb, dict(preconditioner="gdsw", subdomains=loops,
                                                           partition="segments"))):
         # every step solved to cg_tol, as the distributed loop does (no Newton-decrement stop)
-        serial = SchwarzOptimizer(pb.graph, pb.initial, SchwarzParams(**kw, newton_decrement=False))
+        # (the back-end rebuilds its coarse level: the serial run does too)
+        serial = SchwarzOptimizer(pb.graph, pb.initial, SchwarzParams(**kw, newton_decrement=False, transport_coarse=False))
         ref = serial.optimize()
         opt = DistributedOptimizer(pb.graph, pb.initial, SchwarzParams(**kw))
         full = opt.linearizer

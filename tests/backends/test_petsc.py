@@ -47,7 +47,8 @@ def serial():
 
     pb = gs.square_loops(LOOPS, POINTS)
     params = gs.SchwarzParams(method="gn", preconditioner="gdsw", subdomains=LOOPS, partition="segments",
-                              newton_decrement=False, forcing="none")  # the driver's default: --inexact off
+                              newton_decrement=False, forcing="none",  # the driver's default: --inexact off
+                              transport_coarse=False)  # the back-end rebuilds its coarse level
     opt = gs.SchwarzOptimizer(pb.graph, pb.initial, params)
     opt.optimize()
     return opt
@@ -111,7 +112,8 @@ def test_linear_coarse_spaces_on_two_ranks_equal_serial(name):
 
     pb = lawnmower(*LAWNMOWER)
     serial = gs.SchwarzOptimizer(pb.graph, pb.initial, gs.SchwarzParams(preconditioner=name, subdomains=6,
-                                                                         newton_decrement=False, forcing="none"))
+                                                                         newton_decrement=False, forcing="none",
+                                                                         transport_coarse=False))
     serial.optimize()
     report = _run(2, "--preconditioner", name, "--subdomains", "6",
                   problem=("--lawnmower", *(str(v) for v in LAWNMOWER)))
