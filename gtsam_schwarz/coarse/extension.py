@@ -117,26 +117,33 @@ class CoarseBasis:
     def _transform_entries(self, T, verts, start, lengths, d) -> None:
         """The general case of :meth:`transform_vertex_rows` for the rows of ``verts``: every entry
         (v, i, c) ← Σ_k T_v[i, k] Φ[(v, k), c], the entry of row k in column c found by a search of
-        the sorted (row, column) keys (0 where row k has no entry there)."""
+        the sorted (row, column) keys (0 where row k has no entry there); in blocks of vertices."""
         L = self.local
         data, indices, nc = L.data, L.indices, max(L.shape[1], 1)
+        mixes = np.any(T[verts] != 0.0, axis=0) & ~np.eye(d, dtype=bool)   # (i, k ≠ i) pairs T mixes
         n_v = lengths[verts].sum(axis=1)
-        pos = np.repeat(start[verts], n_v) + (np.arange(int(n_v.sum())) - np.repeat(np.cumsum(n_v) - n_v, n_v))
-        row = np.searchsorted(L.indptr, pos, side="right") - 1
-        key = row.astype(np.int64) * nc + indices[pos]
-        vertex, i = np.divmod(row, d)
-        old = data[pos]
-        new = T[vertex, i, i] * old   # k = i: the entry itself
-        mixes = np.any(T != 0.0, axis=0)   # (i, k) pairs that T mixes anywhere
-        for k in range(d):
-            rows_k = np.flatnonzero(mixes[:, k] & (np.arange(d) != k))
-            sel = np.flatnonzero(np.isin(i, rows_k))
-            if not len(sel):
-                continue
-            want = (vertex[sel].astype(np.int64) * d + k) * nc + indices[pos[sel]]
-            at = np.minimum(np.searchsorted(key, want), len(key) - 1)
-            new[sel] += np.where(key[at] == want, T[vertex[sel], i[sel], k] * old[at], 0.0)
-        data[pos] = new
+        ends = np.cumsum(n_v)
+        c0 = 0
+        while c0 < len(verts):   # a loop over blocks of vertices (bounded temporaries)
+            base = int(ends[c0 - 1]) if c0 else 0
+            c1 = max(c0 + 1, int(np.searchsorted(ends, base + self.TRANSFORM_CHUNK // 2, side="right")))
+            v, n = verts[c0:c1], n_v[c0:c1]
+            pos = np.repeat(start[v] - (ends[c0:c1] - n - base), n) + np.arange(int(n.sum()))
+            row = np.repeat((v[:, None] * d + np.arange(d)).ravel(), lengths[v].ravel())
+            vertex, i = np.divmod(row, d)
+            col = indices[pos].astype(np.int64)
+            key = row * nc + col
+            old = data[pos]
+            new = T[vertex, i, i] * old   # k = i: the entry itself
+            for k in range(d):
+                sel = np.flatnonzero(mixes[i, k])
+                if not len(sel):
+                    continue
+                want = (vertex[sel] * d + k) * nc + col[sel]
+                at = np.minimum(np.searchsorted(key, want), len(key) - 1)
+                new[sel] += np.where(key[at] == want, T[vertex[sel], i[sel], k] * old[at], 0.0)
+            data[pos] = new
+            c0 = c1
 
     def tocsr(self) -> sp.csr_matrix:
         """Φ in global row order (a copy: for tests, plots and other back-ends)."""
