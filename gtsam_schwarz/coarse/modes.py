@@ -54,16 +54,20 @@ def rigid_transport(old: VertexGeometry, new: VertexGeometry, vertices: np.ndarr
     rigid_modes(new) about the same centers (the modes are M_v = Ad(X_v⁻¹) times a per-center
     constant, :func:`rigid_modes`). Pose2: [[R_nᵀR_o, R_nᵀJ(x_n − x_o)], [0, 1]]; Pose3 (ω, v):
     [[R_nᵀR_o, 0], [−R_nᵀ[x_n − x_o]×R_o, R_nᵀR_o]]."""
-    Rn_t = np.swapaxes(new.rotations[vertices], 1, 2)
-    R = Rn_t @ old.rotations[vertices]
     dx = new.positions[vertices] - old.positions[vertices]
     m = len(vertices)
-    if new.d == 2:
+    if new.d == 2:   # elementwise: (cos, sin) of both headings (batched 2 × 2 products cost 4× more)
+        cn, sn = new.rotations[vertices, 0, 0], new.rotations[vertices, 1, 0]
+        co, so = old.rotations[vertices, 0, 0], old.rotations[vertices, 1, 0]
+        c, s = cn * co + sn * so, cn * so - sn * co   # R_nᵀR_o
         T = np.zeros((m, 3, 3))
-        T[:, :2, :2] = R
-        T[:, :2, 2] = np.einsum("mij,mj->mi", Rn_t, np.stack([-dx[:, 1], dx[:, 0]], axis=1))
+        T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s, s, c
+        T[:, 0, 2] = cn * -dx[:, 1] + sn * dx[:, 0]   # R_nᵀ J dx, J dx = (−dx_y, dx_x)
+        T[:, 1, 2] = -sn * -dx[:, 1] + cn * dx[:, 0]
         T[:, 2, 2] = 1.0
         return T
+    Rn_t = np.swapaxes(new.rotations[vertices], 1, 2)
+    R = Rn_t @ old.rotations[vertices]
     cross = np.zeros((m, 3, 3))  # −[dx]×
     cross[:, 0, 1], cross[:, 0, 2], cross[:, 1, 2] = dx[:, 2], -dx[:, 1], dx[:, 0]
     cross[:, 1, 0], cross[:, 2, 0], cross[:, 2, 1] = -dx[:, 2], dx[:, 1], -dx[:, 0]
