@@ -20,7 +20,7 @@ from ..util import with_small_pages
 from ..util.heap import populate_ahead
 from .gauge import free_components
 from .hooks import verbose_printer
-from .initialize import chordal_state
+from .initialize import chordal_state, prepare_chordal
 from .linear_solver import Forcing, LinearSolver, make_linear_solver
 from .params import (DampingParams, LevenbergMarquardtParams, LinearSolverParams, SchwarzParams, as_nonlinear,
                      linear_solver_names)
@@ -43,6 +43,8 @@ class SchwarzOptimizer:
     a run that stops without converging warns (``warnings.warn``) with the reason.
     """
 
+    chordal_ahead = True  # the chordal start's solver choice analysed while the start is read
+
     @with_small_pages
     def __init__(self, graph, initial, params=None, linearizer: Linearizer | None = None,
                  linear_solver: LinearSolverParams | None = None):
@@ -55,10 +57,13 @@ class SchwarzOptimizer:
         pattern = getattr(linearizer, "pattern", None)
         if pattern is not None:  # faulted in on a helper thread while the start is computed (tuned heap only)
             populate_ahead(FRESH_BYTES_PER_ENTRY * pattern.nnz)
+        method = self.nonlinear_params.initialization
+        # the chordal start's solver choice is analysed on the side thread while the start is read
+        prepared = prepare_chordal(linearizer, self._chordal_solver()) if method != "file" and self.chordal_ahead else None
         self._state = linearizer.state(initial) if initial is not None else linearizer.initial_state()
         self._error = linearizer.error(self._state)
         self.initial_error = self._error
-        self.initialization = self._initialize(self.nonlinear_params.initialization)
+        self.initialization = self._initialize(method, prepared)
         self.history: list[IterationRecord] = []
         self.converged = False
         self.stop_reason = ""
@@ -105,19 +110,23 @@ class SchwarzOptimizer:
     def decomposition(self):
         return self.linear_solver.decomposition
 
-    def _initialize(self, method: str) -> dict:
-        """Replace the given start by a global initialization when that lowers the error."""
-        record = {"method": method, "used": False, "error_given": self._error, "error": float("nan"),
-                  "seconds": 0.0, "note": ""}
-        if method == "file":
-            return record
-        t0 = time.perf_counter()
+    def _chordal_solver(self) -> str:
         # its two systems are Laplacians with one (2D, complex) or three (3D) unknowns per pose: on sparse
         # graphs they are factorized (262k-pose model problem: 0.17 s, CG 0.9 s); they go to CG where the
         # factor fills in (91 125-pose 3D survey: 24 s direct, 6.6 s CG, 1/3 of the memory; 360 000-pose 2D
         # lawnmower: 3.9 s direct, 2.1 s CG)
         schwarz = self.nonlinear_params.linear_solver.preconditioner not in ("auto", "direct")
-        state, note = chordal_state(self.linearizer, self._state, solver="cg-3d" if schwarz else "auto")
+        return "cg-3d" if schwarz else "auto"
+
+    def _initialize(self, method: str, prepared=None) -> dict:
+        """Replace the given start by a global initialization when that lowers the error
+        (``prepared``: :func:`~.initialize.prepare_chordal`'s result)."""
+        record = {"method": method, "used": False, "error_given": self._error, "error": float("nan"),
+                  "seconds": 0.0, "note": ""}
+        if method == "file":
+            return record
+        t0 = time.perf_counter()
+        state, note = chordal_state(self.linearizer, self._state, solver=self._chordal_solver(), prepared=prepared)
         record["note"] = note
         if state is not None:
             error = self.linearizer.error(state)

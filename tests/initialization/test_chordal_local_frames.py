@@ -126,3 +126,32 @@ def test_chordal_state_follows_the_linear_solver():
     assert "CG" in note_cg and "(direct" in note_direct
     assert lin.error(cg) == pytest.approx(lin.error(direct), rel=0.25)
     assert lin.error(cg) < 0.01 * lin.error(start)
+
+
+def test_the_choice_prepared_on_the_side_thread_is_the_one_made_in_place(monkeypatch):
+    """prepare_chordal analyses the rotation system on the side thread (the optimizer calls it before
+    reading the start); chordal_state given its result makes the choice and the start it makes alone."""
+    import threading
+
+    import gtsam_schwarz.nonlinear.initialize as init
+    from gtsam_schwarz.problems import lawnmower
+
+    monkeypatch.setattr(init, "CG_MIN_POSES_2D", 1000)   # a 40 x 40 lawnmower is analysed
+    lin = NativeLinearizer.from_arrays(**lawnmower(40, 40, sigma=0.01, seed=3).arrays)
+    real, threads = init.rotation_solver, []
+
+    def recorded(*args):
+        threads.append(threading.current_thread().name)
+        return real(*args)
+
+    monkeypatch.setattr(init, "rotation_solver", recorded)
+    graph, choice = init.prepare_chordal(lin, "auto")
+    solver, why = choice()
+    assert threads == ["gtsam-schwarz-side_0"] and why.startswith(f"rotations {solver}")
+    b = graph["between"]
+    assert (solver, why) == real(graph["n"], np.asarray(b["i"]), np.asarray(b["j"]), 2)
+    start = lin.initial_state()
+    ahead, note_ahead = init.chordal_state(lin, start, "auto", prepared=init.prepare_chordal(lin, "auto"))
+    alone, note_alone = init.chordal_state(lin, start, "auto")
+    assert note_ahead.split("(")[1] == note_alone.split("(")[1]   # the same solver and reason
+    assert np.array_equal(ahead.pose2, alone.pose2)

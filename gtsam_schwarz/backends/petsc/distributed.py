@@ -285,7 +285,9 @@ class DistributedOptimizer(SchwarzOptimizer):
             self.setup_seconds = time.perf_counter() - t0
         self._geometry_cache = None
 
-    def _initialize(self, method: str) -> dict:
+    chordal_ahead = False  # rank 0 alone computes the start (below): no analysis on every rank
+
+    def _initialize(self, method: str, prepared=None) -> dict:
         """The global initialization on rank 0 alone, its poses broadcast (the others sleep meanwhile)."""
         if self.mpi.Get_size() == 1 or method == "file" or replicated_reason(self.linearizer):
             return super()._initialize(method)
