@@ -94,6 +94,8 @@ class CoarseBasis:
                 data[at] = np.matmul(T[v], data[at].reshape(len(v), d, int(k))).reshape(len(v), -1)
         other = np.flatnonzero(~uniform)
         if len(other):
+            other = self._transform_nested(T, other, start, lengths, d)
+        if len(other):
             self._transform_entries(T, other, start, lengths, d)
 
     def _uniform_vertices(self, lengths: np.ndarray, start: np.ndarray) -> np.ndarray:
@@ -113,6 +115,50 @@ class CoarseBasis:
         owner = np.repeat(np.arange(len(cand)), K)
         same[cand[np.unique(owner[bad])]] = False
         return same
+
+    def _transform_nested(self, T, verts, start, lengths, d) -> np.ndarray:
+        """Vertices whose rows' columns all lie in the columns of their longest row (interface rows:
+        the rotation rows hold a subset of the others' columns), multiplied as dense d × L blocks on
+        those L columns: each entry placed by one search among them. Returns the vertices that are
+        not nested (for :meth:`_transform_entries`)."""
+        L = self.local
+        data, indices, nc = L.data, L.indices, max(L.shape[1], 1)
+        longest = lengths[verts].max(axis=1)
+        ref = np.argmax(lengths[verts], axis=1)   # the first longest row of each vertex
+        row_start = start[verts, None] + np.concatenate(
+            [np.zeros((len(verts), 1), dtype=np.int64), np.cumsum(lengths[verts], axis=1)[:, :-1]], axis=1)
+        left = []
+        for length in np.unique(longest):   # the distinct lengths (a few dozen at most)
+            sel = np.flatnonzero(longest == length)
+            width = int(length)
+            step = max(1, self.TRANSFORM_CHUNK // (2 * d * max(width, 1)))
+            for c0 in range(0, len(sel), step):   # blocks of vertices (bounded temporaries)
+                g = sel[c0:c0 + step]
+                v, m = verts[g], len(g)
+                ref_at = row_start[g, ref[g]][:, None] + np.arange(width)   # the union's columns
+                ref_key = (np.arange(m)[:, None] * np.int64(nc) + indices[ref_at]).ravel()
+                n_v = lengths[v].sum(axis=1)
+                ends = np.cumsum(n_v)
+                pos = np.repeat(start[v] - (ends - n_v), n_v) + np.arange(int(ends[-1]))
+                local_v = np.repeat(np.arange(m), n_v)
+                i = np.repeat(np.tile(np.arange(d), m), lengths[v].ravel())
+                key = local_v * np.int64(nc) + indices[pos]
+                at = np.minimum(np.searchsorted(ref_key, key), len(ref_key) - 1)
+                hit = ref_key[at] == key
+                if not hit.all():   # not nested: those vertices go entry by entry
+                    bad = np.zeros(m, dtype=bool)
+                    bad[local_v[~hit]] = True
+                    left.append(v[bad])
+                    keep = ~bad[local_v]
+                    pos, local_v, i, at = pos[keep], local_v[keep], i[keep], at[keep]
+                    if not len(pos):
+                        continue
+                col = at - local_v * width   # place among the vertex's union columns
+                D = np.zeros((m, d, width))
+                D[local_v, i, col] = data[pos]
+                D = np.matmul(T[v], D)
+                data[pos] = D[local_v, i, col]
+        return np.sort(np.concatenate(left)) if left else np.zeros(0, dtype=np.int64)
 
     def _transform_entries(self, T, verts, start, lengths, d) -> None:
         """The general case of :meth:`transform_vertex_rows` for the rows of ``verts``: every entry

@@ -62,10 +62,15 @@ def _operator(built):
     return H, make_preconditioner("rgdsw-linear", H, dec, mask, geometry=geometry), geometry
 
 
-def test_vertex_blocks_multiplied_in_place_equal_the_block_diagonal_product(built):
+def test_vertex_blocks_multiplied_in_place_equal_the_block_diagonal_product(built, monkeypatch):
     """Φ ← diag(T_v) Φ in place, interior rows as dense blocks and interface rows (structural zeros
-    in the rotation rows) entry by entry, equals the sparse product; storage and pattern kept.
-    Random T mixing every pair of rows too, where a plain sparse Φ (no plan) takes the same path."""
+    in the rotation rows, nested in the other rows' columns) as dense blocks on their union,
+    equals the sparse product; storage and pattern kept. A plain sparse Φ (no plan) with random,
+    not nested patterns goes entry by entry and gives the product on its pattern."""
+    entrywise = []
+    real = CoarseBasis._transform_entries
+    monkeypatch.setattr(CoarseBasis, "_transform_entries", lambda self, T, verts, *a: (entrywise.append(len(verts)),
+                                                                                      real(self, T, verts, *a))[1])
     H, M, geometry = _operator(built)
     basis = M.coarse_space.basis
     d = 3 if geometry.d == 2 else 6
@@ -78,7 +83,8 @@ def test_vertex_blocks_multiplied_in_place_equal_the_block_diagonal_product(buil
     basis.transform_vertex_rows(T)
     assert basis.local.data is data and np.array_equal(basis.local.indices, indices)
     assert np.abs(basis.local.toarray() - expected).max() <= 1e-12 * np.abs(expected).max()
-    # a full pattern in every vertex's rows (no structure): any T, no plan
+    assert not entrywise   # rigid modes: every vertex's rows are nested
+    # random patterns, not nested in one row's: any T, no plan
     rng = np.random.default_rng(6)
     full = sp.csr_matrix(np.where(rng.random((8 * d, 5)) < 0.5, rng.normal(size=(8 * d, 5)), 0.0))
     dense_T = rng.normal(size=(8, d, d))
@@ -89,6 +95,7 @@ def test_vertex_blocks_multiplied_in_place_equal_the_block_diagonal_product(buil
     kept.data[:] = 1.0
     reference = (D @ full).toarray() * kept.toarray()  # the product on Φ's pattern
     assert np.abs(plain.local.toarray() - reference).max() < 1e-12
+    assert entrywise and entrywise[-1] > 0
 
 
 def test_transport_keeps_a0_and_the_subdomain_factors_and_moves_the_interface_values(built):
