@@ -70,8 +70,9 @@ class CoarseBasis:
         """Φ ← diag(T_1, …, T_m) Φ in place, T (m, d, d) for the vertices of :meth:`vertex_rows`
         (its storage and pattern kept: an entry a row of a vertex lacks is zero in the product when
         every row's pattern contains those of the rows its T mixes in, as for rigid modes). Vertices
-        whose d rows share one pattern are multiplied as dense d × K blocks; the others (interface
-        rows with structural zeros) entry by entry, their sources found by search."""
+        whose d rows share one pattern (the interiors) are multiplied as dense d × K blocks, those
+        whose rows' columns are nested in their longest row's (the interface, whose rotation rows
+        lack the translation columns) as dense blocks on those columns, any others entry by entry."""
         L = self.local
         d = T.shape[1]
         m = len(T)
