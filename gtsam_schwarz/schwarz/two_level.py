@@ -172,15 +172,19 @@ class TwoLevelSchwarz(SumOperator):
     def can_transport(self, geometry: VertexGeometry | None) -> bool:
         """Whether :meth:`transport` applies: a built coarse level of rigid modes written at known
         poses, one pose kind (every vertex ``dim`` dofs, Φ's local rows in whole vertices)."""
+        return self._transport_vertices(geometry) is not None
+
+    def _transport_vertices(self, geometry: VertexGeometry | None) -> np.ndarray | None:
+        """The vertex of each of Φ's local row blocks where :meth:`transport` applies, else None."""
         if self.coarse is None or self.coarse_space is None or self._geometry is None or geometry is None:
-            return False
+            return None
         dim = 3 if geometry.d == 2 else 6
         offsets = self.decomposition.structure.offsets
         if geometry.d != self._geometry.d or len(offsets) - 1 != len(geometry.positions):
-            return False
+            return None
         if not np.array_equal(offsets, np.arange(len(offsets)) * dim):
-            return False
-        return self.coarse_space.basis.vertex_rows(dim) is not None
+            return None
+        return self.coarse_space.basis.vertex_rows(dim)
 
     def transport(self, A, geometry: VertexGeometry):
         """The coarse level carried to new poses instead of rebuilt: Φ ← diag(T_v) Φ with
@@ -193,11 +197,10 @@ class TwoLevelSchwarz(SumOperator):
         solve 15 CG against 14 after a full rebuild and 27-30 with Φ kept as it was. It costs a
         multiplication of Φ's d × d vertex blocks (no extension, no A_0, no factorization).
         Without it (:meth:`can_transport` False) this is :meth:`update_coarse`."""
-        if not self.can_transport(geometry):
+        vertices = self._transport_vertices(geometry)
+        if vertices is None:
             return self.update_coarse(A, geometry)
-        basis = self.coarse_space.basis
-        vertices = basis.vertex_rows(3 if geometry.d == 2 else 6)
-        basis.transform_vertex_rows(rigid_transport(self._geometry, geometry, vertices))
+        self.coarse_space.basis.transform_vertex_rows(rigid_transport(self._geometry, geometry, vertices))
         self._geometry = geometry
         if not self._subdomains_factored:
             self.refactor_subdomains(A)
