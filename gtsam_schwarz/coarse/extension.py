@@ -19,7 +19,7 @@ from ..solvers.cholmod_native import SimplicialCholesky
 from ..solvers.factory import factorize_local
 from ..solvers.gather import pattern_of, sharing_vertex_level
 from ..util import vertex_dofs
-from ..util.sparse import row_block, row_entries
+from ..util.sparse import as_csr, row_block, row_entries
 from ..util.threads import local_threads
 
 
@@ -452,7 +452,7 @@ class HarmonicExtension:
         overwritten when the pattern is the same (memory already paged in: fresh pages cost up to
         10 ms/MiB on the benchmark machines, 2.4 s for Φ at 360 000 2D poses)."""
         n, nc = self.n, col_subdomains.shape[0]
-        A = sp.csr_matrix(A)
+        A = as_csr(A)
         if nc == 0 or len(self.interior) == 0:
             Phi_G = sp.csr_matrix((gamma_vals, (gamma_rows, gamma_cols)), shape=(n, nc))
             return CoarseBasis(Phi_G, np.arange(n)), (Phi_G.T @ A @ Phi_G).tocsr()

@@ -61,6 +61,21 @@ class Interface:
         return is_node, anc
 
 
+def _equal_rows(M: sp.csr_matrix) -> np.ndarray:
+    """A group id per row of M, equal for rows with equal column sets (by their signature's two
+    64-bit words, sorted by ``np.lexsort``: ``np.unique(..., axis=0)`` compares the rows as opaque
+    records, 0.17 s for the 400 000 interface poses of a 1M-pose lawnmower)."""
+    sig = _row_signature(M)
+    if len(sig) == 0:
+        return np.zeros(0, dtype=np.int64)
+    order = np.lexsort((sig[:, 1], sig[:, 0]))
+    s = sig[order]
+    new = np.r_[True, np.any(s[1:] != s[:-1], axis=1)]
+    group = np.empty(len(sig), dtype=np.int64)
+    group[order] = np.cumsum(new) - 1
+    return group
+
+
 def _row_signature(M: sp.csr_matrix, seed: int = 12345) -> np.ndarray:
     """A hash of each row's column set (two random 64-bit projections), for grouping equal rows."""
     rng = np.random.default_rng(seed)
@@ -96,11 +111,9 @@ def find_interface(decomposition: Decomposition, group: str = "components") -> I
     if group == "vertices" or len(gamma) == 0:
         component = np.arange(len(gamma))
     elif group == "two-hop":
-        _, group_id = np.unique(_row_signature(G), axis=0, return_inverse=True)
-        component = _components_within(neighbours, group_id.ravel())
+        component = _components_within(neighbours, _equal_rows(G))
     elif group == "components":
-        _, group_id = np.unique(_row_signature(G), axis=0, return_inverse=True)
-        group_id = group_id.ravel()
+        group_id = _equal_rows(G)
         edges = decomposition.structure.edges
         pos = np.full(S.shape[0], -1, dtype=np.int64)
         pos[gamma] = np.arange(len(gamma))

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ..util import sorted_unique, vertex_pattern
+from ..util import as_csr, sorted_unique, vertex_pattern
 
 
 @dataclass(frozen=True)
@@ -40,13 +40,13 @@ class GraphStructure:
         (blocks with dropped entries) takes every entry's vertex pair."""
         offsets = np.asarray(offsets, dtype=np.int64)
         nv = len(offsets) - 1
-        H = sp.csr_matrix(H)
+        H = as_csr(H)
         dims = np.diff(offsets)
         if H.has_sorted_indices:
             V = vertex_pattern(H, offsets)
             rows = np.repeat(np.arange(nv), np.diff(V.indptr))
             upper = V.indices > rows
-            if int(np.sum(dims[rows] * dims[V.indices])) == H.nnz and _symmetric(V, rows):
+            if int(np.sum(dims[rows] * dims[V.indices])) == H.nnz and _symmetric(V):
                 # rows ascending, sorted columns within a row: the upper pairs come out sorted
                 edges = np.stack([rows[upper], V.indices[upper].astype(np.int64)], axis=1)
                 return cls(offsets=offsets, edges=edges, odometry=edges[:, 1] == edges[:, 0] + 1)
@@ -66,9 +66,9 @@ class GraphStructure:
         return sp.csr_matrix((ones, (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(nv, nv))
 
 
-def _symmetric(V: sp.csr_matrix, rows: np.ndarray) -> bool:
-    """Whether the vertex pattern V (sorted CSR, ``rows`` the row of each entry) is symmetric."""
-    n = V.shape[0]
-    key = rows.astype(np.int64) * n + V.indices
-    transposed = np.sort(V.indices.astype(np.int64) * n + rows)
-    return bool(np.array_equal(key, transposed))
+def _symmetric(V: sp.csr_matrix) -> bool:
+    """Whether the vertex pattern V (sorted CSR, no duplicates) is symmetric: equal
+    to its transpose, whose CSR arrays scipy's O(nnz) conversion writes with sorted indices (a
+    sort of the entries' keys instead: 1M 2D poses, 0.33 s)."""
+    T = V.T.tocsr()
+    return bool(np.array_equal(V.indptr, T.indptr) and np.array_equal(V.indices, T.indices))

@@ -19,6 +19,7 @@ from ..coarse.extension import column_groups
 from ..dd.index_sets import IndexSets
 from ..solvers import block_diagonal, pattern_cholesky_cost, vertex_pattern
 from ..solvers.memory import FACTOR_BYTES, MATRIX_BYTES, InsufficientMemoryError, available_memory, gib
+from ..util import as_csr
 
 EXTENSION_BYTES = 20  # per entry of one column block: right-hand side, solution, its selected part, mask (measured 18)
 OVERHEAD = 1.4  # allocator slack and temporaries not counted above (measured/estimated 0.7-1.1: docs/survey.md, memory)
@@ -65,7 +66,7 @@ def estimate_two_level(M, A, geometry=None) -> MemoryEstimate:
     (``geometry``) of the coming build, its coarse columns are computed once, for both."""
     dec, ext = M.decomposition, M.extension
     offsets = dec.structure.offsets
-    A = sp.csr_matrix(A)
+    A = as_csr(A)
     S = sp.csc_matrix(dec.overlapping)
     S.sort_indices()
     vsets = IndexSets(indices=S.indices.astype(np.int64), ptr=S.indptr.astype(np.int64), n=S.shape[0])

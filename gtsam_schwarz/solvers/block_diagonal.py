@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ..util import vertex_dofs
+from ..util import as_csr, vertex_dofs
 from ..util.threads import local_threads, run_all
 from . import cholmod_native
 from .base import SingularLocalMatrixError
@@ -24,7 +24,7 @@ from .sparse import SparseCholesky
 def block_diagonal(A: sp.spmatrix, sets) -> sp.csr_matrix:
     """diag(R_1 A R_1ᵀ, …, R_N A R_Nᵀ) as one sparse matrix (couplings between blocks dropped);
     ``sets`` is an :class:`~gtsam_schwarz.dd.IndexSets`."""
-    A = sp.csr_matrix(A)
+    A = as_csr(A)
     m = len(sets.indices)
     blk = sets.block_of_entry()
     position = np.full(sets.n, -1, dtype=np.int64)
@@ -214,7 +214,7 @@ class BlockDiagonalSolver:
 
     def update(self, A: sp.spmatrix) -> "BlockDiagonalSolver":
         """Refactor for new numbers in A (symbolic work is reused while A's pattern is unchanged)."""
-        A = sp.csr_matrix(A)
+        A = as_csr(A)
         if self._dense_blocks:
             s = int(self.sets.sizes[0])
             idx = self.sets.indices.reshape(-1, s)

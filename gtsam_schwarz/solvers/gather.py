@@ -7,7 +7,7 @@ import contextlib
 import numpy as np
 import scipy.sparse as sp
 
-from ..util.sparse import row_entries, vertex_pattern
+from ..util.sparse import as_csr, row_entries, vertex_pattern
 
 
 class SparsityPattern:
@@ -64,7 +64,7 @@ class Gather:
         self.pattern = self.src = self.indices = self.indptr = None
 
     def __call__(self, A: sp.spmatrix) -> sp.csr_matrix:
-        A = A if sp.isspmatrix_csr(A) else sp.csr_matrix(A)   # (a new object would check its sorting again: O(nnz))
+        A = as_csr(A)
         if not A.has_sorted_indices:
             A = A.sorted_indices()
         if self.pattern is None or not self.pattern.matches(A):

@@ -2,6 +2,6 @@
 
 from .arrays import sorted_unique, vertex_dofs
 from .pages import small_pages, with_small_pages
-from .sparse import vertex_pattern
+from .sparse import as_csr, vertex_pattern
 
-__all__ = ["small_pages", "sorted_unique", "vertex_dofs", "vertex_pattern", "with_small_pages"]
+__all__ = ["as_csr", "small_pages", "sorted_unique", "vertex_dofs", "vertex_pattern", "with_small_pages"]
