@@ -165,3 +165,25 @@ def test_nested_metis_cuts_about_as_well_as_one_kway_call(monkeypatch):
     # below the threshold it is one k-way call
     monkeypatch.setattr(P, "NESTED_FROM", N + 1)
     assert np.array_equal(P.metis_parts(A, N), P._kway(A, N, 0))
+
+
+def test_vertex_pattern_symmetry_check_and_equal_row_groups():
+    """The symmetry test behind ``GraphStructure.from_matrix``'s fast path accepts a symmetric
+    pattern and refuses one with an unmirrored block; the interface's grouping of vertices by their
+    subdomain sets puts equal rows, and only those, in one group."""
+    import scipy.sparse as sp
+
+    from gtsam_schwarz.dd.interface import _equal_rows
+    from gtsam_schwarz.dd.structure import _symmetric
+
+    S = sp.csr_matrix(np.array([[1, 1, 0, 1], [1, 1, 1, 0], [0, 1, 1, 0], [1, 0, 0, 1]], dtype=float))
+    assert _symmetric(S)
+    A = S.tolil()
+    A[2, 3] = 1.0   # (2, 3) without (3, 2)
+    assert not _symmetric(sp.csr_matrix(A))
+    rows = sp.csr_matrix(np.array([[1, 0, 1], [0, 1, 1], [1, 0, 1], [1, 1, 0], [0, 1, 1], [0, 0, 1]], dtype=float))
+    group = _equal_rows(rows)
+    same = group[:, None] == group[None, :]
+    dense = rows.toarray()
+    assert np.array_equal(same, (dense[:, None, :] == dense[None, :, :]).all(axis=2))
+    assert len(_equal_rows(sp.csr_matrix((0, 3)))) == 0
