@@ -14,7 +14,7 @@ import scipy.sparse as sp
 from scipy.sparse import csgraph
 from scipy.sparse.linalg import splu
 
-from ..krylov import pcg_columns
+from ..krylov import pcg_columns, threaded
 from ..solvers.cost import counted_simplicially, record_column_counts
 from ..solvers.sparse import SparseCholesky
 from ..util import sorted_unique
@@ -539,7 +539,7 @@ class _AggregateSchwarz:
             self.coarse = SparseCholesky(A0, "the chordal coarse matrix", mode="simplicial")
         else:
             self.coarse.refactor(A0)
-        self.A, self.basis = A, basis
+        self.A, self.basis = threaded(A), basis   # its products (two per iteration) on the local threads
         return self
 
     def _coarse(self, x: np.ndarray) -> np.ndarray:

@@ -17,6 +17,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.linalg import eigvalsh_tridiagonal
+from scipy.linalg.blas import daxpy
+
+from .spmv import threaded
 
 
 @dataclass
@@ -63,6 +66,15 @@ def _ritz_min(alphas, betas) -> float:
     return float(eigvalsh_tridiagonal(diag, off, select="i", select_range=(0, 0))[0])
 
 
+def _axpy(a: float, x: np.ndarray, y: np.ndarray) -> None:
+    """y += a·x in place: one pass of BLAS's daxpy for contiguous float64 vectors (numpy's
+    y += a * x makes a temporary: 3M entries 4.9 against 1.3 ms), numpy otherwise."""
+    if y.dtype == np.float64 and x.dtype == np.float64 and y.ndim == 1 and y.flags.c_contiguous and x.flags.c_contiguous:
+        daxpy(x, y, a=a)
+    else:
+        y += a * x
+
+
 def _apply(op, x):
     if op is None:
         return x.copy()
@@ -103,6 +115,7 @@ def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
     if norm not in STOPPING_NORMS:
         raise ValueError(f"unknown stopping norm {norm!r}; choose one of {', '.join(STOPPING_NORMS)}")
     natural = norm == "natural"
+    A = threaded(A)
     b = np.asarray(b, dtype=float)
     n = b.shape[0]
     maxiter = 10 * n if maxiter is None else int(maxiter)
@@ -137,8 +150,8 @@ def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
             info.reason = "matrix not positive definite (pᵀAp ≤ 0)"
             break
         alpha = rz / pAp
-        x += alpha * p
-        r -= alpha * Ap
+        _axpy(alpha, p, x)
+        _axpy(-alpha, Ap, r)
         alphas.append(alpha)
         decrease += 0.5 * alpha * rz
         info.model_decrease = decrease
@@ -199,6 +212,7 @@ def pcg_columns(A, B, M=None, tol: float = 1e-8, maxiter: int | None = None) -> 
     little more than one where A and M are bound by memory traffic). Column j stops when
     ‖b_j − A x_j‖₂ ≤ tol·‖b_j‖₂, as :func:`pcg`. Complex B: A and M Hermitian positive definite
     (inner products conjugated), e.g. 2D rotations as unit complex numbers."""
+    A = threaded(A)
     B = np.asarray(B)
     B = B.astype(complex if np.iscomplexobj(B) else float, copy=False)
     n, k = B.shape

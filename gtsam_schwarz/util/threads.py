@@ -8,9 +8,11 @@ subdomain factorizations slowed both (lawnmower 600x600: 0.62 + 1.14 s one after
 
 from __future__ import annotations
 
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 _POOLS: dict = {}
+_PREFIX = "gtsam-schwarz"
 WORKERS = 2  # the local solves' threads (this project's machines have two cores)
 
 
@@ -24,9 +26,14 @@ def local_threads() -> ThreadPoolExecutor:
     return _pool("local", WORKERS)
 
 
+def on_local_thread() -> bool:
+    """Whether the caller is one of the local threads (work it gives them might wait on itself)."""
+    return threading.current_thread().name.startswith(f"{_PREFIX}-local")
+
+
 def _pool(name: str, workers: int) -> ThreadPoolExecutor:
     if name not in _POOLS:
-        _POOLS[name] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix=f"gtsam-schwarz-{name}")
+        _POOLS[name] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix=f"{_PREFIX}-{name}")
     return _POOLS[name]
 
 

@@ -148,3 +148,35 @@ def test_pcg_columns_solves_hermitian_systems_as_their_real_equivalent():
     xr, info = pcg(Ar, np.r_[b.real[:, 0], b.imag[:, 0]], tol=1e-10)
     assert info.iterations == infos[0].iterations
     np.testing.assert_allclose(X[:, 0], xr[:n] + 1j * xr[n:], rtol=1e-8, atol=1e-10)
+
+
+def test_row_block_products_equal_scipys_and_stay_on_one_thread_where_they_must(monkeypatch):
+    """The threaded product of a CSR matrix (row blocks of about equal entries on the local threads)
+    equals scipy's for vectors, blocks of columns and complex numbers; small matrices, other formats
+    and calls from a local thread keep the matrix itself; CG gives the same iterate either way."""
+    import scipy.sparse as sp
+
+    from gtsam_schwarz.krylov import spmv
+    from gtsam_schwarz.util.threads import local_threads
+
+    rng = np.random.default_rng(3)
+    n = 3000
+    A = sp.random(n, n, density=2e-3, random_state=4, format="csr") + sp.eye(n, format="csr") * n
+    A = (A + A.T).tocsr()
+    A.sort_indices()
+    T = spmv.RowBlockMatrix(A)
+    assert len(T.blocks) == 2 and T.blocks[0][0] == 0 and T.blocks[-1][1] == n
+    x, X = rng.random(n), rng.random((n, 3))
+    assert np.allclose(T @ x, A @ x, rtol=0, atol=1e-10) and np.allclose(T @ X, A @ X, rtol=0, atol=1e-10)
+    Z = rng.random((n, 1)) + 1j * rng.random((n, 1))
+    assert np.allclose(T @ Z, A @ Z) and (T @ Z).dtype == complex
+    assert spmv.threaded(A) is A   # below THREADED_FROM entries
+    monkeypatch.setattr(spmv, "THREADED_FROM", 10)
+    assert isinstance(spmv.threaded(A), spmv.RowBlockMatrix) and spmv.threaded(A.tocsc()) is not None
+    assert not isinstance(spmv.threaded(A.tocsc()), spmv.RowBlockMatrix)
+    assert local_threads().submit(lambda: spmv.threaded(A)).result() is A   # no waiting on its own pool
+    b = rng.random(n)
+    x_threaded, info_t = pcg(A, b, tol=1e-10)
+    monkeypatch.setattr(spmv, "THREADED_FROM", 10**12)
+    x_plain, info_p = pcg(A, b, tol=1e-10)
+    assert info_t.iterations == info_p.iterations and np.allclose(x_threaded, x_plain, rtol=0, atol=1e-12)
