@@ -20,7 +20,7 @@ from ..solvers.factory import factorize_local
 from ..solvers.gather import pattern_of, sharing_vertex_level
 from ..util import vertex_dofs
 from ..util.sparse import as_csr, row_block, row_entries
-from ..util.threads import local_threads
+from ..util.threads import local_threads, on_local_thread, run_all
 
 
 class CoarseBasis:
@@ -245,12 +245,21 @@ class _Group:
         self.A_IG = Submatrix(interior, gamma, n, self._shared, offsets)
         self.factor = None
         self._released = None  # A's pattern when the factor's numbers and the gathers were dropped
+        self._same = None  # prepare's finding: the factor's analysis applies to A (None: not prepared)
+
+    def prepare(self, A) -> None:
+        """A_II's positions for A (symbolic; the groups one after the other) and whether the factor's
+        analysis still applies, for a :meth:`refactor` that may then run on another thread."""
+        pattern = self.A_II.pattern or self._released
+        self.A_II.prepare(A)
+        self._same = pattern is not None and (self.A_II.pattern is pattern or pattern.matches(A))
+        self._released = None
 
     def refactor(self, A):
-        pattern = self.A_II.pattern or self._released
+        if self._same is None:
+            self.prepare(A)
         A_II = self.A_II(A)
-        same = pattern is not None and (self.A_II.pattern is pattern or pattern.matches(A))
-        self._released = None
+        same, self._same = self._same, None
         if isinstance(self.factor, (SparseCholesky, SimplicialCholesky)) and same:
             self.factor.refactor(A_II)  # same pattern: numbers only (the analysis is kept by release)
         else:   # simplicial where CHOLMOD would choose it: its solves then run on the local threads
@@ -476,8 +485,16 @@ class HarmonicExtension:
         Phi_G = sp.csr_matrix((gamma_vals[plan["g_order"]], plan["indices"][plan["nnz_I"]:], plan["ptr_G"]),
                               shape=(len(self.gamma), nc))
         with sharing_vertex_level():   # the groups' gathers read A's vertex level once
+            side_by_side = len(self.groups) > 1 and not on_local_thread()
+            if side_by_side:
+                # the groups' A_II factorized side by side first (CHOLMOD holds no GIL; lawnmower
+                # 1000x1000: 1.9 -> 1.1 s): all interior factors at once, as the memory estimate counts
+                for group in self.groups:
+                    group.prepare(A)
+                run_all(local_threads(), [lambda g=group: g.refactor(A) for group in self.groups])
             for group, gplan in zip(self.groups, plan["groups"]):
-                group.refactor(A)
+                if not side_by_side:
+                    group.refactor(A)
                 self._extend(group, group.A_IG(A), Phi_G, plan, gplan, data)
                 if not self.keep_factors:  # the next refactor finds the gathers' positions again
                     group.release()

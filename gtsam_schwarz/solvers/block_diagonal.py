@@ -12,7 +12,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..util import as_csr, vertex_dofs
-from ..util.threads import local_threads, run_all
+from ..util.threads import local_threads, on_local_thread, run_all
 from . import cholmod_native
 from .base import SingularLocalMatrixError
 from .cost import pattern_ordering, vertex_pattern
@@ -230,16 +230,25 @@ class BlockDiagonalSolver:
         if self._chunks is None:
             self.order_vertices(A)
             self._chunks = self._plan_chunks(A)
+        fresh = []
         with sharing_vertex_level():   # the chunks share A's vertex level while finding positions
-            for chunk in self._chunks:   # one after the other: one chunk's gathered matrix at a time
-                _, _, gather, factor = chunk
-                pattern = gather.pattern
-                B = gather(A)
-                fresh = factor is None or gather.pattern is not pattern
-                if fresh:
+            for chunk in self._chunks:   # the positions (symbolic) one chunk after the other
+                pattern = chunk[2].pattern
+                A = chunk[2].prepare(A)
+                fresh.append(chunk[3] is None or chunk[2].pattern is not pattern)
+                if fresh[-1]:
                     chunk[3] = None
-                self._factorize(chunk, B, fresh)
-                del B
+
+        def job(chunk, new):   # gathered, then factorized: one chunk's matrix per thread at a time
+            B = chunk[2](A)
+            self._factorize(chunk, B, new)
+
+        jobs = [lambda c=c, f=f: job(c, f) for c, f in zip(self._chunks, fresh)]
+        if self.threaded and len(jobs) > 1 and not on_local_thread():
+            run_all(local_threads(), jobs)   # two chunks factorized side by side (CHOLMOD holds no GIL)
+        else:
+            for j in jobs:
+                j()
         return self
 
     def _factorize(self, chunk: list, B: sp.csr_matrix, fresh: bool) -> None:

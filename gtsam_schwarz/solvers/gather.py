@@ -63,13 +63,19 @@ class Gather:
         """Drop the positions and B's pattern (memory); the next call finds them anew."""
         self.pattern = self.src = self.indices = self.indptr = None
 
-    def __call__(self, A: sp.spmatrix) -> sp.csr_matrix:
+    def prepare(self, A: sp.spmatrix) -> sp.csr_matrix:
+        """The positions for A's pattern (found unless known; B's numbers are not kept); returns A as
+        the sorted CSR matrix that :meth:`__call__` reads."""
         A = as_csr(A)
         if not A.has_sorted_indices:
             A = A.sorted_indices()
         if self.pattern is None or not self.pattern.matches(A):
-            self.src, self.indices, self.indptr, self.shape = self._positions(A)  # B's numbers are not kept
+            self.src, self.indices, self.indptr, self.shape = self._positions(A)
             self.pattern = pattern_of(A)
+        return A
+
+    def __call__(self, A: sp.spmatrix) -> sp.csr_matrix:
+        A = self.prepare(A)
         # every result shares the (read-only) index arrays: only its numbers are new
         B = sp.csr_matrix((A.data[self.src], self.indices, self.indptr), shape=self.shape, copy=False)
         B.has_sorted_indices = True
