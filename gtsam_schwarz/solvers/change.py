@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from ..util import as_csr
+
 
 class EntryChange:
     """The diagonally scaled RMS change of A's stored entries since a reference R (same pattern):
@@ -39,8 +41,7 @@ class EntryChange:
     def sums(self, A: sp.spmatrix) -> tuple[float, int]:
         """(Σ of the squared scaled changes, number of entries compared); inf when A's pattern is not
         R's (a different size, count or sampled columns)."""
-        if not sp.isspmatrix_csr(A):
-            A = sp.csr_matrix(A)
+        A = as_csr(A)
         if A.shape != self.shape or A.nnz != self.nnz or not np.array_equal(A.indices[self.idx], self.cols):
             return float("inf"), 1
         diff = (A.data[self.idx] - self.values) * self.scale
