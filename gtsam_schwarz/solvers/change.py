@@ -23,7 +23,7 @@ class EntryChange:
     SAMPLES = 1 << 17  # entries compared (the RMS of 131 072 terms: a few per cent of noise)
 
     def __init__(self, R: sp.spmatrix, seed: int = 0, diagonal: np.ndarray | None = None, first_row: int = 0):
-        R = sp.csr_matrix(R)
+        R = as_csr(R)   # not re-wrapped: no new O(nnz) check of sorted indices
         nnz = R.nnz
         self.shape, self.nnz = R.shape, nnz
         if nnz <= self.SAMPLES:
