@@ -56,7 +56,7 @@ def block_diagonal_positions(A: sp.csr_matrix, sets) -> sp.csr_matrix | None:
     dims = np.diff(sets.offsets)
     if not (len(dims) and np.all(dims == dims[0])):
         return None
-    return _block_diagonal_by_vertices(sp.csr_matrix(A), sets, positions=True)
+    return _block_diagonal_by_vertices(as_csr(A), sets, positions=True)
 
 
 def _block_diagonal_by_vertices(A: sp.csr_matrix, sets, positions: bool = False) -> sp.csr_matrix | None:
@@ -191,7 +191,7 @@ class BlockDiagonalSolver:
             return False
         nv = len(sets.offsets) - 1
         vsets = type(sets)(indices=sets.vertices, ptr=sets.vertex_ptr, n=nv)
-        blocks = block_diagonal(vertex_pattern(sp.csr_matrix(A), sets.offsets), vsets)
+        blocks = block_diagonal(vertex_pattern(as_csr(A), sets.offsets), vsets)
         perm = pattern_ordering(blocks)
         if perm is None:
             return False

@@ -18,7 +18,7 @@ import scipy.sparse.linalg as spla
 
 from . import cholmod_symbolic
 from .sparse import SPARSE_BACKEND
-from ..util import vertex_pattern  # noqa: F401 (re-exported: solvers.vertex_pattern)
+from ..util import as_csr, vertex_pattern  # noqa: F401 (vertex_pattern re-exported: solvers.vertex_pattern)
 
 
 NATURAL_SLACK = 1.02  # a matrix's own order is used where its factor has at most this many times AMD's entries
@@ -54,7 +54,7 @@ def cholesky_cost(A: sp.spmatrix, offsets: np.ndarray, natural: bool = False) ->
     """Predicted nnz(L) and flops of factorizing A (block pattern given by ``offsets``); with
     ``natural``, also nnz(L) in A's own order (:attr:`CholeskyCost.natural_suffices`)."""
     offsets = np.asarray(offsets, dtype=np.int64)
-    return pattern_cholesky_cost(vertex_pattern(A, offsets), np.diff(offsets), int(sp.csr_matrix(A).nnz), natural)
+    return pattern_cholesky_cost(vertex_pattern(A, offsets), np.diff(offsets), int(as_csr(A).nnz), natural)
 
 
 def pattern_cholesky_cost(B: sp.spmatrix, dims: np.ndarray, nnz_A: int | None = None,
