@@ -470,7 +470,7 @@ def _local_frames(layout: _SchwarzLayout, red: _Reduced, i, j, R_meas) -> np.nda
 def _local_phases(layout: _SchwarzLayout, red: _Reduced, i, j, a: np.ndarray) -> np.ndarray:
     """2D :func:`_local_frames` as unit complex numbers q_v = cos θ̃_v + i sin θ̃_v (``a``: the edges'
     e^{iδ_ij}): a product of complex numbers per tree edge instead of 2 × 2 matrices (1M poses:
-    ~0.4 s less)."""
+    0.26 against 0.55 s)."""
     q = np.ones(red.free_nodes.size, dtype=complex)
     for nodes, parent, e, forward in _tree_levels(layout, red, i, j):
         q[nodes] = q[parent] * np.where(forward, a[e], np.conj(a[e]))
