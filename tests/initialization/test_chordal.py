@@ -434,6 +434,23 @@ def test_3d_direct_path_with_isotropic_translations_matches_real_cg():
         np.testing.assert_allclose(direct.positions[3], p[3], atol=1e-12)
 
 
+def test_2d_local_phases_are_the_local_frames_as_complex_numbers():
+    """The 2D aggregates' local frames composed as unit complex numbers equal the 2 × 2 rotations
+    composed along the same BFS trees (seeds at the identity, every other node off it)."""
+    rng = np.random.default_rng(11)
+    n = 400
+    R, p = trajectory(n, 2, rng)
+    e, Rij, _ = pose_graph(R, p, 120, rng, noise=0.1)
+    i, j = e[:, 0], e[:, 1]
+    red = chordal_module._Reduced(n, 1, np.array([0]))
+    layout = chordal_module._SchwarzLayout(red, i, j, 8, 0, 0)
+    frames = chordal_module._local_frames(layout, red, i, j, Rij)
+    phases = chordal_module._local_phases(layout, red, i, j, Rij[:, 0, 0] + 1j * Rij[:, 1, 0])
+    np.testing.assert_allclose(phases, frames[:, 0, 0] + 1j * frames[:, 1, 0], atol=1e-14)
+    np.testing.assert_allclose(np.abs(phases), 1.0, atol=1e-14)
+    assert np.sum(layout.pred >= 0) > n // 2 and np.abs(phases - 1).max() > 0.1   # composed, not all seeds
+
+
 def test_2d_cg_without_overlap_runs_in_complex_numbers():
     """2D CG on aggregates without overlap: rotations and positions (x + iy) as one complex unknown per
     pose on one pattern, deflated CG: the direct solution to the tolerance, noise-free graphs exactly,
