@@ -33,6 +33,7 @@ class CGInfo:
     model_decrease: float = float("nan")  # ½xᵀAx − bᵀx at 0 minus at the returned x
     decrement_bound: float = float("nan")  # with ``decrement_tol``: the bound on the whole decrease at the stop
     decrement_stop: bool = False  # stopped because the whole model decrease is below ``decrement_tol``
+    left_bound: float = float("nan")  # with ``bound_left``: the model decrease still to come, at most (nan: unknown)
 
     @property
     def condition(self) -> float:
@@ -99,7 +100,8 @@ DECREMENT_SAFETY = 10.0  # the Ritz λmin is an upper estimate of λmin: the lef
 
 def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
         callback=None, norm: str = "residual", bounds=None,
-        decrement_tol: float | None = None, decrement_left: float | None = None) -> tuple[np.ndarray, CGInfo]:
+        decrement_tol: float | None = None, decrement_left: float | None = None,
+        bound_left: bool = False) -> tuple[np.ndarray, CGInfo]:
     """Solve A x = b (A SPD) by CG preconditioned with M ≈ A⁻¹ (SPD).
 
     Stops when ‖b − A x‖₂ ≤ tol·‖b‖₂ (the paper's relative tolerance) or after ``maxiter``
@@ -118,6 +120,10 @@ def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
     ``DECREMENT_SAFETY`` × ½γ_k/λ̂min (λ̂min: the smallest Ritz value so far), is at most
     ``decrement_tol`` and that left-over at most ``decrement_left`` (if given): the exact solution
     would lower the model by less than ``decrement_tol``, and x is within ``decrement_left`` of it.
+
+    ``bound_left``: on convergence, ``left_bound`` = ``DECREMENT_SAFETY`` × ½γ/λ̂min bounds what the
+    exact solution would still lower the model beyond x (one more application of M for γ = rᵀM⁻¹r;
+    nan before ``DECREMENT_MIN_ITERATIONS``, whose Ritz values are too rough).
     """
     if norm not in STOPPING_NORMS:
         raise ValueError(f"unknown stopping norm {norm!r}; choose one of {', '.join(STOPPING_NORMS)}")
@@ -201,6 +207,11 @@ def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
     else:
         info.reason = f"iteration limit {maxiter} reached"
     info.lambda_min, info.lambda_max = lanczos_extremes(alphas, betas)
+    if bound_left and info.converged and len(alphas) >= DECREMENT_MIN_ITERATIONS:
+        gamma = float(r @ _apply(M, r))
+        ritz_min = _ritz_min(alphas, betas[:len(alphas) - 1])
+        if np.isfinite(gamma) and gamma >= 0 and ritz_min > 0:
+            info.left_bound = DECREMENT_SAFETY * 0.5 * gamma / ritz_min
     return x, info
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import importlib
 import time
+from dataclasses import replace
 from typing import Callable
 
 import numpy as np
@@ -44,6 +45,15 @@ class LinearSolver:
 
     def moved(self, step_max: float) -> None:
         """The linearization point moved by an accepted step of max-norm ``step_max``."""
+
+    def refinable(self) -> bool:
+        """Whether this solver bounds what CG left (``bound_left``) and :meth:`refine` continues its solves."""
+        return False
+
+    def refine(self, H, rhs, tol, previous: SolveResult, decrement_tol=None, decrement_left=None) -> SolveResult:
+        """The last solve of H (``previous``, to a looser tolerance) continued to ``tol`` with the same
+        preconditioner, counts merged."""
+        raise NotImplementedError
 
     def release(self) -> None:
         """Drop the numbers held between solves (factorizations, coarse basis; the symbolic work is
@@ -280,10 +290,11 @@ class PreconditionedCG(LinearSolver):
                 self._subdomain_change = self._change
         return M
 
-    def solve(self, H, rhs, tol, geometry, decrement_tol=None, decrement_left=None):
+    def solve(self, H, rhs, tol, geometry, decrement_tol=None, decrement_left=None, bound_left=False):
         """Preconditioned CG to relative residual ``tol`` (or until the step's whole model decrease is
         bounded by ``decrement_tol``). A lagged preconditioner that lets CG exceed its iteration cap
-        is rebuilt for H and CG continues from where it stopped."""
+        is rebuilt for H and CG continues from where it stopped. ``bound_left``: bound the model
+        decrease left beyond the result (:func:`~gtsam_schwarz.krylov.pcg`'s ``left_bound``)."""
         p = self.params
         t0 = time.perf_counter()
         H = sp.csr_matrix(H)
@@ -296,7 +307,7 @@ class PreconditionedCG(LinearSolver):
         if kept and reference is not None:  # earlier subdomain factors: the lagged M's cap
             cap = int(p.lag_growth * reference) + 2
         setup = time.perf_counter() - t0
-        decrement = {"decrement_tol": decrement_tol, "decrement_left": decrement_left}
+        decrement = {"decrement_tol": decrement_tol, "decrement_left": decrement_left, "bound_left": bound_left}
         x, info = pcg(H, rhs, M, tol=tol, maxiter=cap if cap is not None else p.cg_max_iterations, **decrement)
         iterations, residuals = info.iterations, list(info.residuals)
         if cap is not None and not (info.converged or info.decrement_stop):  # stale: rebuild for H, continue from x
@@ -316,10 +327,26 @@ class PreconditionedCG(LinearSolver):
             self._cg_after_build, self._moved = info.iterations, 0.0
         return SolveResult(x=x, iterations=iterations, converged=info.converged,
                            decrement_stop=info.decrement_stop, decrement_bound=info.decrement_bound,
-                           lambda_min=info.lambda_min, lambda_max=info.lambda_max,
+                           left_bound=info.left_bound, lambda_min=info.lambda_min, lambda_max=info.lambda_max,
                            residuals=residuals, tolerance=tol, setup_seconds=setup,
                            coarse_size=M.coarse_size, rebuilt=self._rebuilt, lagged=lagged, subdomains_kept=kept,
                            coarse_transported=transported)
+
+    def refinable(self) -> bool:
+        return True
+
+    def refine(self, H, rhs, tol, previous, decrement_tol=None, decrement_left=None):
+        """CG from ``previous.x`` to ``tol`` with the preconditioner of the last solve (a restart: the
+        Krylov space is built anew, at one product with H and one application of M more)."""
+        x, info = pcg(H, rhs, self.operator, tol=tol, maxiter=self.params.cg_max_iterations, x0=previous.x,
+                      decrement_tol=decrement_tol, decrement_left=decrement_left)
+        iterations = previous.iterations + info.iterations
+        if previous.rebuilt and not previous.lagged and not info.decrement_stop:  # the build's reference count
+            self._cg_after_build = iterations
+        return replace(previous, x=x, iterations=iterations, converged=info.converged,
+                       decrement_stop=info.decrement_stop, decrement_bound=info.decrement_bound,
+                       left_bound=float("nan"), residuals=list(previous.residuals) + list(info.residuals[1:]),
+                       tolerance=tol, lambda_min=info.lambda_min, lambda_max=info.lambda_max)
 
 
 class CostModel:
@@ -501,14 +528,21 @@ class AutoSolver(LinearSolver):
             self.on_choice(self.choice)
         return self.chosen
 
-    def solve(self, H, rhs, tol, geometry, decrement_tol=None, decrement_left=None):
+    def solve(self, H, rhs, tol, geometry, decrement_tol=None, decrement_left=None, bound_left=False):
         t0 = time.perf_counter()
         if self.chosen is None:
             self.choose(H, geometry)  # the analysis counts as setup of the first solve
         choosing = time.perf_counter() - t0
-        result = self.chosen.solve(H, rhs, tol, geometry, decrement_tol, decrement_left)
+        extra = {"bound_left": True} if bound_left and self.chosen.refinable() else {}
+        result = self.chosen.solve(H, rhs, tol, geometry, decrement_tol, decrement_left, **extra)
         result.setup_seconds += choosing
         return result
+
+    def refinable(self) -> bool:
+        return self.chosen is None or self.chosen.refinable()   # (if direct is chosen, its solves are exact)
+
+    def refine(self, H, rhs, tol, previous, decrement_tol=None, decrement_left=None):
+        return self.chosen.refine(H, rhs, tol, previous, decrement_tol, decrement_left)
 
     def moved(self, step_max: float) -> None:
         if self.chosen is not None:
@@ -550,6 +584,17 @@ class Forcing:
         self.krylov = krylov if krylov is not None else (lambda: True)
         self.previous = None  # (gradient norm, η) of the previous linear solve
         self.exact_next = False
+
+    def probe(self, tol: float) -> float | None:
+        """The looser tolerance ``forcing_probe`` for the run's first inexact solve (None: none). No
+        forcing term exists before a first step shows how nonlinear the problem is: that step is
+        solved to ``forcing_probe`` and kept where its model's error (predicted against actual
+        decrease) exceeds the bound on what CG had left; otherwise CG continues to ``tol``."""
+        p = self.params
+        probe = p.forcing_probe
+        if self.previous is not None or self.exact_next or not self.inexact() or not probe or probe <= tol:
+            return None
+        return probe
 
     def inexact(self) -> bool:
         p = self.params  # "auto" only while the steps are solved by preconditioned CG

@@ -195,28 +195,54 @@ class SchwarzOptimizer:
 
     def _try_step(self, system: LinearSystem, gnorm: float, lam: float, iteration: int,
                   seconds: dict) -> tuple[IterationRecord, object]:
-        """Solve (H + λD) δ = −g, retract, evaluate; returns the record and the new state."""
+        """Solve (H + λD) δ = −g, retract, evaluate; returns the record and the new state. The run's
+        first inexact solve may go to a looser tolerance first (:meth:`Forcing.probe`)."""
         tol = self.forcing.tolerance(gnorm)
+        probe = self.forcing.probe(tol) if self.linear_solver.refinable() else None
         total, left = self._decrement_tols()
+        geometry = lambda: self.linearizer.geometry(self._state)  # noqa: E731
+        extra = {"bound_left": True} if probe is not None else {}
         t0 = time.perf_counter()
         with self._damped(system, lam) as H:
-            result = self.linear_solver.solve(H, system.rhs, tol, lambda: self.linearizer.geometry(self._state),
-                                              decrement_tol=total, decrement_left=left)
+            result = self.linear_solver.solve(H, system.rhs, probe or tol, geometry,
+                                              decrement_tol=total, decrement_left=left, **extra)
         t1 = time.perf_counter()
-        new_state = self.linearizer.retract(self._state, result.x)
-        new_error = self.linearizer.error(new_state)
-        t2 = time.perf_counter()
+        new_state, new_error, predicted = self._evaluate(system, result.x)
+        cg, update = t1 - t0 - result.setup_seconds, time.perf_counter() - t1
+        probed = ""
+        if probe is not None and result.tolerance == probe and result.converged and not result.decrement_stop:
+            # kept where the step's model error exceeds the bound on CG's left-over model decrease: solving
+            # further would change the outcome less than the nonlinearity does (a failed step is kept: LM
+            # retries it exactly)
+            model_error = abs(self._error - new_error + predicted)
+            if not np.isfinite(new_error) or model_error >= result.left_bound:
+                probed, tol = "kept", probe
+            else:
+                probed = "refined"
+                t2 = time.perf_counter()
+                with self._damped(system, lam) as H:
+                    result = self.linear_solver.refine(H, system.rhs, tol, result, decrement_tol=total,
+                                                       decrement_left=left)
+                t3 = time.perf_counter()
+                new_state, new_error, predicted = self._evaluate(system, result.x)
+                cg, update = cg + t3 - t2, update + time.perf_counter() - t3
         self.forcing.solved(gnorm, tol)
         dx = result.x
-        predicted = float(system.g @ dx + 0.5 * dx @ (system.H @ dx))
         record = self._record(iteration, gnorm, lam, new_error, predicted, float(np.linalg.norm(dx)),
-                              float(np.abs(dx).max()) if len(dx) else 0.0, result, seconds, (t0, t1, t2))
+                              float(np.abs(dx).max()) if len(dx) else 0.0, result, seconds, cg, update)
+        record.probe = probed
         return record, new_state
 
+    def _evaluate(self, system: LinearSystem, dx: np.ndarray) -> tuple[object, float, float]:
+        """The state retracted by ``dx``, its error, and the undamped model's change gᵀδ + ½δᵀHδ."""
+        new_state = self.linearizer.retract(self._state, dx)
+        new_error = self.linearizer.error(new_state)
+        return new_state, new_error, float(system.g @ dx + 0.5 * dx @ (system.H @ dx))
+
     def _record(self, iteration: int, gnorm: float, lam: float, new_error: float, predicted: float,
-                step_norm: float, step_max: float, result, seconds: dict, times: tuple) -> IterationRecord:
-        """The record of one tried step; ``predicted`` = gᵀδ + ½δᵀHδ, ``times`` = (start, solved, evaluated)."""
-        t0, t1, t2 = times
+                step_norm: float, step_max: float, result, seconds: dict, cg: float, update: float) -> IterationRecord:
+        """The record of one tried step; ``predicted`` = gᵀδ + ½δᵀHδ, ``cg`` and ``update`` the seconds of
+        the solve (without its setup) and of the evaluation."""
         return IterationRecord(
             iteration=iteration, error_before=self._error, error=new_error, gradient_norm=gnorm,
             step_norm=step_norm, step_max=step_max, lambda_=lam,
@@ -230,7 +256,7 @@ class SchwarzOptimizer:
             decrement_stop=bool(getattr(result, "decrement_stop", False)),
             decrement_bound=float(getattr(result, "decrement_bound", float("nan"))),
             seconds={"linearize": seconds.get("linearize", 0.0), "export": seconds.get("export", 0.0),
-                     "setup": result.setup_seconds, "cg": t1 - t0 - result.setup_seconds, "update": t2 - t1})
+                     "setup": result.setup_seconds, "cg": cg, "update": update})
 
     def _decrement_tols(self) -> tuple[float | None, float | None]:
         """The Newton-decrement rule's (total, left): CG may stop once the exact (damped) step is bounded

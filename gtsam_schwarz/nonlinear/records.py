@@ -29,6 +29,7 @@ class SolveResult:
     coarse_transported: bool = False  # the coarse level carried to the new poses (Φ ← diag(T_v) Φ, A_0 kept), not rebuilt
     decrement_stop: bool = False  # CG stopped early: the exact step would lower the model by < decrement_tol
     decrement_bound: float = float("nan")  # that bound on the exact step's model decrease
+    left_bound: float = float("nan")  # asked for (``bound_left``): the model decrease beyond x, at most
 
 
 @dataclass
@@ -60,6 +61,9 @@ class IterationRecord(Mapping):
     seconds: dict = field(default_factory=dict)  # per phase: linearize, export, setup, cg, update
     decrement_stop: bool = False  # CG stopped once the exact step's model decrease was bounded below tolerance
     decrement_bound: float = float("nan")  # that bound (the last CG iterate's), if CG computed one
+    # the run's first inexact solve went to the looser ``forcing_probe`` first: "kept" (the step's
+    # nonlinearity outweighed what CG had left) or "refined" (CG continued to the forcing term); "": none
+    probe: str = ""
 
     @staticmethod
     def _attr(key: str) -> str:

@@ -149,9 +149,10 @@ def distributed_cases(comm, loops: int, points: int) -> list:
                          ("survey3d", survey3d(2, 4, 4), dict(preconditioner="gdsw", subdomains=4)),
                          ("gtsam_factors", mixed_pb, dict(preconditioner="gdsw", subdomains=loops,
                                                           partition="segments"))):
-        # every step solved to cg_tol, as the distributed loop does (no Newton-decrement stop)
-        # (the back-end rebuilds its coarse level: the serial run does too)
-        serial = SchwarzOptimizer(pb.graph, pb.initial, SchwarzParams(**kw, newton_decrement=False, transport_coarse=False))
+        # every step solved to its forcing term, as the distributed loop does (no Newton-decrement stop, no
+        # first-step probe); the back-end rebuilds its coarse level: the serial run does too
+        serial = SchwarzOptimizer(pb.graph, pb.initial, SchwarzParams(**kw, newton_decrement=False, transport_coarse=False,
+                                                                      forcing_probe=0.0))
         ref = serial.optimize()
         opt = DistributedOptimizer(pb.graph, pb.initial, SchwarzParams(**kw))
         full = opt.linearizer

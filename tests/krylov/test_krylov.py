@@ -107,6 +107,26 @@ def test_model_decrease_and_decrement_bound(precondition):
     assert above.model_decrease <= decrement * (1 + 1e-12) <= above.decrement_bound
 
 
+@pytest.mark.parametrize("precondition", [False, True])
+def test_left_bound_bounds_what_cg_left_of_the_model_decrease(precondition):
+    """``bound_left``: on convergence to a loose tolerance, ``left_bound`` is at least what the exact
+    solution would still lower the model beyond x, φ(x) − φ(x*) = ½(x* − x)ᵀA(x* − x); unknown (nan)
+    after fewer iterations than the Ritz values need, and not computed unless asked for."""
+    A = _laplacian_2d()
+    b = np.random.default_rng(5).normal(size=A.shape[0])
+    M = Jacobi(A.shape[0]).update(A) if precondition else None
+    x_star = spla.spsolve(A.tocsc(), b)
+    for tol in (1e-1, 1e-2, 1e-4):
+        x, info = pcg(A, b, M, tol=tol, bound_left=True)
+        left = 0.5 * (x_star - x) @ (A @ (x_star - x))
+        assert info.converged and info.iterations >= 5
+        assert left <= info.left_bound < 1e4 * max(left, 1e-300)
+    _, plain = pcg(A, b, M, tol=1e-2)
+    assert np.isnan(plain.left_bound)
+    _, early = pcg(A, b, M, tol=0.9, bound_left=True)
+    assert early.converged and early.iterations < 5 and np.isnan(early.left_bound)
+
+
 def test_pcg_columns_runs_each_column_as_pcg_does():
     """Side-by-side CG: every column takes the iterations, residuals and solution of its own pcg run
     (columns stop separately; a zero column is converged at once)."""

@@ -290,6 +290,57 @@ def test_automatic_forcing_is_inexact_for_schwarz_cg_and_exact_for_direct():
         assert opt.converged and abs(opt.error() - lm) <= 1e-6 * lm
 
 
+def test_forcing_probe_is_the_first_inexact_solves_only():
+    """The looser ``forcing_probe`` applies to the run's first inexact solve alone: not once a forcing
+    term exists, not to an exact retry, not for exact solvers, not when off or tighter than the term."""
+    from gtsam_schwarz.nonlinear.linear_solver import Forcing
+    from gtsam_schwarz.nonlinear.params import LinearSolverParams
+
+    p = LinearSolverParams()
+    first = Forcing(p, krylov=lambda: True)
+    tol = first.tolerance(1.0)
+    assert tol == p.forcing_max and first.probe(tol) == p.forcing_probe > tol
+    first.solved(1.0, p.forcing_probe)
+    assert first.probe(first.tolerance(0.1)) is None
+    retry = Forcing(p, krylov=lambda: True)
+    retry.exact_next = True
+    assert retry.probe(retry.tolerance(1.0)) is None
+    assert Forcing(p, krylov=lambda: False).probe(p.cg_tol) is None
+    assert Forcing(LinearSolverParams(forcing_probe=0.0), krylov=lambda: True).probe(p.forcing_max) is None
+    assert Forcing(LinearSolverParams(forcing_probe=1e-4), krylov=lambda: True).probe(p.forcing_max) is None
+
+
+@pytest.mark.parametrize("case", ["nonlinear 2D", "nearly linear 3D"])
+def test_first_step_probe_keeps_or_refines_and_reaches_the_same_minimum(case):
+    """The first solve goes to ``forcing_probe`` (1e-2) first. A noisy lawnmower's first step has a
+    model error (predicted against actual decrease) above what CG left: kept, in fewer CG iterations
+    than to the forcing term. A 3D survey's model is nearly exact there: CG continues to the forcing
+    term from where it stopped. Both end where the run without the probe does, and at GTSAM LM's error."""
+    from gtsam_schwarz.problems import lawnmower
+    from gtsam_schwarz.problems.survey import survey3d
+
+    pb = lawnmower(30, 30, sigma=0.05) if case == "nonlinear 2D" else survey3d(4, 10, 10)
+    runs = {}
+    for probe in (1e-2, 0.0):
+        opt = SchwarzOptimizer(pb.graph, pb.initial, SchwarzParams(preconditioner="rgdsw-linear", forcing_probe=probe))
+        opt.optimize()
+        assert opt.converged
+        runs[probe] = opt
+    probed, plain = runs[1e-2].history[0], runs[0.0].history[0]
+    assert plain.probe == "" and all(h.probe == "" for h in runs[1e-2].history[1:])
+    if case == "nonlinear 2D":
+        assert probed.probe == "kept" and probed.cg_tolerance == 1e-2
+        assert probed.cg_iterations < plain.cg_iterations
+        assert abs(probed.error_before - probed.error - probed.predicted_decrease) > 1e-3 * probed.predicted_decrease
+    else:
+        assert probed.probe == "refined" and probed.cg_tolerance == plain.cg_tolerance == 1e-3
+        assert probed.cg_residuals[-1] <= 1e-3 and len(probed.cg_residuals) == probed.cg_iterations + 1   # both parts
+    e_probe, e_plain = runs[1e-2].error(), runs[0.0].error()
+    assert abs(e_probe - e_plain) <= 1e-8 * e_plain
+    lm = pb.graph.error(gtsam.LevenbergMarquardtOptimizer(pb.graph, pb.initial, gtsam.LevenbergMarquardtParams()).optimize())
+    assert e_probe <= lm * (1 + 1e-6)
+
+
 def test_cost_model_counts_the_forcing_terms_cg_iterations():
     """The automatic choice predicts Schwarz with the CG iterations its solves will take: fewer under
     the forcing term ("auto", the default) than to cg_tol ("none"); a prediction within the margin

@@ -435,7 +435,7 @@ class DistributedOptimizer(SchwarzOptimizer):
         self.forcing.solved(gnorm, tol)
         predicted = float(gx + 0.5 * xHx)
         record = self._record(iteration, gnorm, lam, new_error, predicted, float(np.sqrt(xx)), step_max, result,
-                              seconds, (t0, t1, t2))
+                              seconds, t1 - t0 - result.setup_seconds, t2 - t1)
         return record, new_state
 
     def destroy(self) -> None:

@@ -440,6 +440,9 @@ class PetscSchwarzSolver(PreconditionedCG):
         return its, reason, history, lmin, lmax
 
     # -- LinearSolver ------------------------------------------------------------------------------
+    def refinable(self) -> bool:
+        return False   # KSP solves to tol: no bound of what it left, no continuation
+
     def solve(self, H, rhs, tol, geometry, decrement_tol=None, decrement_left=None):  # decrement_*: not used (KSP solves to tol)
         """CG to relative residual ``tol`` (same lagging decisions as PreconditionedCG); the step x
         in the original numbering, complete on every rank."""
