@@ -11,6 +11,7 @@ from ..dd.geometry import VertexGeometry
 from ..dd.interface import find_interface
 from ..solvers import SingularLocalMatrixError, factorize
 from ..solvers.memory import bound_heap_fragmentation
+from ..util.threads import on_local_thread, side_thread
 from .base import SchwarzOperator, SumOperator
 from .memory import fit_memory
 from .one_level import AdditiveSchwarz, _need
@@ -144,11 +145,21 @@ class TwoLevelSchwarz(SumOperator):
         # the previous Φ is not needed while the new one is built: its storage takes the new numbers
         previous = self.coarse_space.basis if self.coarse_space is not None else None
         self.release(factors=low)
-        self.coarse_space = gdsw_coarse_space(A, self.decomposition, self.interface, self.kind, geometry,
-                                              self.rotation, self.translation_mask, self.extension, recycle=previous)
+        refactor = subdomains or not self._subdomains_factored
+        # the subdomain blocks' symbolic work (gather positions) on the side thread while the
+        # extension runs, much of it on one core (lawnmower 1000x1000: ~1 s); the memory estimate
+        # already counts those positions beside the extension ("gathered matrices")
+        ahead = self._prepare_subdomains(A) if refactor else None
+        try:
+            self.coarse_space = gdsw_coarse_space(A, self.decomposition, self.interface, self.kind, geometry,
+                                                  self.rotation, self.translation_mask, self.extension,
+                                                  recycle=previous)
+        finally:
+            if ahead is not None:
+                ahead.result()
         del previous
         self._geometry = geometry if self.rigid else None
-        if subdomains or not self._subdomains_factored:
+        if refactor:
             self.refactor_subdomains(A)
         self.concurrent = self.coarse_space.basis.nnz >= self.CONCURRENT_FROM
         self.coarse = CoarseCorrection(self.coarse_space)
@@ -205,6 +216,14 @@ class TwoLevelSchwarz(SumOperator):
         if not self._subdomains_factored:
             self.refactor_subdomains(A)
         return self
+
+    def _prepare_subdomains(self, A):
+        """A future of the one-level solver's symbolic preparation for A on the side thread (None
+        where the solver has none or the caller is a worker thread itself)."""
+        prepare = getattr(self.one_level.solver, "prepare", None)
+        if prepare is None or on_local_thread():
+            return None
+        return side_thread().submit(prepare, A)
 
     def refactor_subdomains(self, A):
         """The one-level part's factorizations for A, the coarse level kept (after :meth:`update_coarse`

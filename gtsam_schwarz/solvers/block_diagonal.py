@@ -213,6 +213,28 @@ class BlockDiagonalSolver:
         blocks, self._vertex_blocks = self._vertex_blocks, None
         return blocks
 
+    def prepare(self, A: sp.spmatrix) -> None:
+        """The symbolic work of :meth:`update` for A's pattern (chunks and their gather positions),
+        without numbers: a caller may run it on another thread ahead of the update."""
+        A = as_csr(A)
+        if not self._dense_blocks:
+            self._prepare(A)
+
+    def _prepare(self, A: sp.csr_matrix) -> tuple:
+        """(A as the chunks' gathers read it, whether each chunk needs a fresh analysis)."""
+        if self._chunks is None:
+            self.order_vertices(A)
+            self._chunks = self._plan_chunks(A)
+        fresh = []
+        with sharing_vertex_level():   # the chunks share A's vertex level while finding positions
+            for chunk in self._chunks:   # the positions (symbolic) one chunk after the other
+                pattern = chunk[2].pattern
+                A = chunk[2].prepare(A)
+                fresh.append(chunk[3] is None or chunk[2].pattern is not pattern)
+                if fresh[-1]:
+                    chunk[3] = None
+        return A, fresh
+
     def update(self, A: sp.spmatrix) -> "BlockDiagonalSolver":
         """Refactor for new numbers in A (symbolic work is reused while A's pattern is unchanged)."""
         A = as_csr(A)
@@ -228,17 +250,7 @@ class BlockDiagonalSolver:
             if not np.all(np.isfinite(self._dense)):
                 raise SingularLocalMatrixError("a diagonal block is singular")
             return self
-        if self._chunks is None:
-            self.order_vertices(A)
-            self._chunks = self._plan_chunks(A)
-        fresh = []
-        with sharing_vertex_level():   # the chunks share A's vertex level while finding positions
-            for chunk in self._chunks:   # the positions (symbolic) one chunk after the other
-                pattern = chunk[2].pattern
-                A = chunk[2].prepare(A)
-                fresh.append(chunk[3] is None or chunk[2].pattern is not pattern)
-                if fresh[-1]:
-                    chunk[3] = None
+        A, fresh = self._prepare(A)
 
         def job(chunk, new):   # gathered, then factorized: one chunk's matrix per thread at a time
             B = chunk[2](A)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import threading
 
 import numpy as np
 import scipy.sparse as sp
@@ -161,43 +162,58 @@ def _whole_vertices(rows: np.ndarray, cols: np.ndarray, offsets: np.ndarray | No
 
 # -- positions by vertex blocks (a matrix made of whole d×d blocks, as H) ------------------------
 
-_VERTEX_LEVEL: list = []   # [(key, A's pattern arrays, result)] within sharing_vertex_level()
+_VERTEX_LEVEL: dict = {"users": 0, "entry": None}   # (key, A's pattern arrays, result) while shared
+_VERTEX_LOCK = threading.Lock()
 
 
 @contextlib.contextmanager
 def sharing_vertex_level():
-    """Within: extractions from the same A share its vertex level (:func:`vertex_level`); dropped after."""
-    _VERTEX_LEVEL[:] = [(None, None, None)]
+    """Within: extractions from the same A share its vertex level (:func:`vertex_level`), also across
+    threads (the one-level chunks' positions found on the side thread while the extension runs);
+    dropped when the last user leaves."""
+    with _VERTEX_LOCK:
+        _VERTEX_LEVEL["users"] += 1
     try:
         yield
     finally:
-        _VERTEX_LEVEL.clear()
+        with _VERTEX_LOCK:
+            _VERTEX_LEVEL["users"] -= 1
+            if not _VERTEX_LEVEL["users"]:
+                _VERTEX_LEVEL["entry"] = None
 
 
 def vertex_level(A: sp.csr_matrix, offsets: np.ndarray):
     """A's vertex pattern V (its numbers: 1 + each vertex entry's number) and where each block starts
     in its dof rows, or None when A is not made of whole blocks. Kept within
     :func:`sharing_vertex_level`: the one-level chunks and the extension's groups read the same A
-    (1M 2D poses, 7 chunks: ~0.7 s each for this part)."""
+    (1M 2D poses, 7 chunks: ~0.7 s each for this part); a second thread asking for it meanwhile
+    waits for the first one's instead of forming it again."""
     key = (A.indptr.ctypes.data, A.indices.ctypes.data, A.indptr.size, A.indices.size, offsets.ctypes.data, offsets.size)
-    if _VERTEX_LEVEL and _VERTEX_LEVEL[0][0] == key:
-        return _VERTEX_LEVEL[0][2]
+    with _VERTEX_LOCK:
+        if _VERTEX_LEVEL["users"]:
+            entry = _VERTEX_LEVEL["entry"]
+            if entry is not None and entry[0] == key:
+                return entry[2]
+            result = _vertex_level(A, offsets)   # formed under the lock: another user of the same A waits
+            _VERTEX_LEVEL["entry"] = (key, (A.indptr, A.indices, offsets), result)
+            return result
+    return _vertex_level(A, offsets)
+
+
+def _vertex_level(A: sp.csr_matrix, offsets: np.ndarray):
     dims = np.diff(offsets)
     nv = len(dims)
     V = vertex_pattern(A, offsets)
     V.sort_indices()
     vrow = np.repeat(np.arange(nv), np.diff(V.indptr))
-    result = None
-    if int(np.sum(dims[vrow] * dims[V.indices])) == A.nnz:
-        # where block (u, v) starts in each dof row of u: the widths of the blocks before it in the row
-        width = dims[V.indices]
-        before = np.cumsum(width) - width
-        col_start = before - before[V.indptr[vrow]]
-        V.data = np.arange(1, V.nnz + 1, dtype=float)  # 1 + the vertex entry's number
-        result = (V, col_start)
-    if _VERTEX_LEVEL:   # a solver's update is finding positions: keep it for its next chunk
-        _VERTEX_LEVEL[:] = [(key, (A.indptr, A.indices, offsets), result)]
-    return result
+    if int(np.sum(dims[vrow] * dims[V.indices])) != A.nnz:
+        return None
+    # where block (u, v) starts in each dof row of u: the widths of the blocks before it in the row
+    width = dims[V.indices]
+    before = np.cumsum(width) - width
+    col_start = before - before[V.indptr[vrow]]
+    V.data = np.arange(1, V.nnz + 1, dtype=float)  # 1 + the vertex entry's number
+    return V, col_start
 
 
 def submatrix_positions(A: sp.csr_matrix, row_vertices: np.ndarray, col_vertices: np.ndarray,

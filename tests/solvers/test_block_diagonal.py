@@ -109,7 +109,7 @@ def test_chunks_share_the_vertex_level_while_finding_positions(monkeypatch):
     monkeypatch.setattr(gather, "vertex_pattern", lambda *a: (calls.append(1), pattern(*a))[1])
     solver = BlockDiagonalSolver(sets, H)
     assert len(solver._chunks) >= 3 and len(calls) == 1   # one vertex pattern for every chunk
-    assert not gather._VERTEX_LEVEL   # dropped after the update
+    assert gather._VERTEX_LEVEL == {"users": 0, "entry": None}   # dropped after the update
     x = np.random.default_rng(1).normal(size=H.shape[0])
     B = block_diagonal(H, sets).toarray()
     xl = x[sets.indices]
@@ -118,6 +118,39 @@ def test_chunks_share_the_vertex_level_while_finding_positions(monkeypatch):
     for lo, hi, gather, _ in solver._chunks:
         part = block_diagonal(H, gather.sets)
         assert np.array_equal(gather(H).toarray(), part.toarray()) and part.shape[0] == hi - lo
+
+
+def test_threads_sharing_the_vertex_level_form_it_once(monkeypatch):
+    """Two threads inside their own sharing_vertex_level() asking for the same A's vertex level (the
+    one-level chunks' positions on the side thread beside the extension) get one vertex pattern,
+    formed once, equal to the level formed without sharing; it is dropped when both have left."""
+    import importlib
+    import threading
+
+    gather = importlib.import_module("gtsam_schwarz.solvers.gather")
+    prob = lawnmower(10, 10, sigma=0.01, seed=0)
+    lin = NativeLinearizer.from_arrays(**prob.arrays)
+    H = sp.csr_matrix(lin.linearize(lin.initial_state()).H)
+    H.sort_indices()
+    alone = gather.vertex_level(H, lin.offsets)
+    calls, results, inside = [], [], threading.Barrier(2)
+    pattern = gather.vertex_pattern
+    monkeypatch.setattr(gather, "vertex_pattern", lambda *a: (calls.append(1), pattern(*a))[1])
+
+    def user():
+        with gather.sharing_vertex_level():
+            inside.wait()   # both are sharing before either asks
+            results.append(gather.vertex_level(H, lin.offsets))
+            inside.wait()
+
+    threads = [threading.Thread(target=user) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(calls) == 1 and len(results) == 2 and results[0] is results[1]
+    assert np.array_equal(results[0][0].toarray(), alone[0].toarray()) and np.array_equal(results[0][1], alone[1])
+    assert gather._VERTEX_LEVEL == {"users": 0, "entry": None}
 
 
 @pytest.mark.parametrize("problem, overlap", [(lambda: lawnmower(16, 16, sigma=0.01, seed=1), 0),
