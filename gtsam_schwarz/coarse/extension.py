@@ -331,6 +331,9 @@ class HarmonicExtension:
         self.sub = owner_dof[self.interior]
         self.block_columns, self.max_groups = block_columns, max_groups
         self.keep_factors = True  # False: each group's A_II factorization is dropped after its solve
+        # called once every group is extended (its factors dropped where not kept), before A_0: a
+        # caller's work that should not sit beside the interior factors starts there
+        self.on_extended = None
         self.groups: list[_Group] = []
         self.order = None  # rows of Φ's local storage: the groups' interior dofs, then Γ
         self._local_row = None  # Φ's local row of every global dof (the inverse of ``order``)
@@ -498,6 +501,8 @@ class HarmonicExtension:
                 self._extend(group, group.A_IG(A), Phi_G, plan, gplan, data)
                 if not self.keep_factors:  # the next refactor finds the gathers' positions again
                     group.release()
+            if self.on_extended is not None:   # while A's vertex level is still shared
+                self.on_extended()
         data[plan["nnz_I"]:] = gamma_vals[plan["g_order"]]
         local = sp.csr_matrix((data, plan["indices"], plan["indptr"]), shape=(n, nc))
         # (AΦ)_I = A_II Φ_I + A_IΓ Φ_Γ = 0 for the harmonic extension, so Φᵀ A Φ = Φ_Γᵀ (AΦ)_Γ:
