@@ -40,7 +40,9 @@ class LinearSolverParams:
     so where the steps are solved by Schwarz-preconditioned CG (each CG iteration costs local solves:
     3D survey 32x32x32, CG per solve 47 + 17 -> 15 + 13, LM 17.3 -> 14.0 s, the same error to 2e-9) and
     keeps ``cg_tol`` for the direct factorization (its lagged CG is cheap, and inexact steps cost LM
-    iterations: one more on sphere2500, M3500 and city10000).
+    iterations: one more on sphere2500, M3500 and city10000). Under a forcing term the run's first
+    inexact solve probes the looser ``forcing_probe`` and keeps that step where its model error
+    exceeds what CG left of the decrease (CG is continued otherwise).
     """
 
     preconditioner: str = "auto"  # auto | direct | a registered preconditioner (none, jacobi, …, gdsw, rgdsw)
