@@ -147,9 +147,9 @@ class TwoLevelSchwarz(SumOperator):
         self.release(factors=low)
         refactor = subdomains or not self._subdomains_factored
         # the subdomain blocks' symbolic work (gather positions) on the side thread while the
-        # extension assembles A_0 on one core, after the interior factors are gone: started with
-        # the extension, those positions raised the 1M 2D peak by ~190 MiB (5 281 / 5 218 against
-        # 5 077 / 5 044 MiB), for 1.4-1.9 s less setup
+        # extension assembles A_0 on one core, after the interior factors are gone (1M 2D poses:
+        # setup 9.9 / 12.4 against 15.2 / 14.8 s, the same peak); started with the extension, the
+        # positions sat beside the interior factors and raised that peak by ~190 MiB
         ahead = []
         if refactor:
             self.extension.on_extended = lambda: ahead.append(self._prepare_subdomains(A))
