@@ -45,11 +45,8 @@ class GraphStructure:
         if H.has_sorted_indices:
             V = vertex_pattern(H, offsets)
             rows = np.repeat(np.arange(nv), np.diff(V.indptr))
-            upper = V.indices > rows
             if int(np.sum(dims[rows] * dims[V.indices])) == H.nnz and _symmetric(V):
-                # rows ascending, sorted columns within a row: the upper pairs come out sorted
-                edges = np.stack([rows[upper], V.indices[upper].astype(np.int64)], axis=1)
-                return cls(offsets=offsets, edges=edges, odometry=edges[:, 1] == edges[:, 0] + 1)
+                return cls.from_vertex_pattern(V, offsets)
         owner = np.repeat(np.arange(nv), dims)
         C = H.tocoo()
         u, v = owner[C.row], owner[C.col]
@@ -57,6 +54,16 @@ class GraphStructure:
         pairs = sorted_unique(u[keep] * np.int64(nv) + v[keep])
         edges = np.stack([pairs // nv, pairs % nv], axis=1)
         return cls(offsets=offsets, edges=edges, odometry=edges[:, 1] == edges[:, 0] + 1)
+
+    @classmethod
+    def from_vertex_pattern(cls, V: sp.csr_matrix, offsets: np.ndarray) -> "GraphStructure":
+        """Edges from a symmetric vertex pattern with sorted rows (H's, from :func:`util.vertex_pattern`
+        or the linearizer's fixed block pattern before any numbers)."""
+        rows = np.repeat(np.arange(V.shape[0]), np.diff(V.indptr))
+        upper = V.indices > rows
+        # rows ascending, sorted columns within a row: the upper pairs come out sorted
+        edges = np.stack([rows[upper], V.indices[upper].astype(np.int64)], axis=1)
+        return cls(offsets=np.asarray(offsets, dtype=np.int64), edges=edges, odometry=edges[:, 1] == edges[:, 0] + 1)
 
     def adjacency(self, mask: np.ndarray | None = None) -> sp.csr_matrix:
         """Symmetric vertex adjacency of the edges selected by ``mask`` (all edges if None)."""

@@ -962,6 +962,18 @@ class BlockPattern:
         return (self._indptr64[row0[:, None] + np.arange(dr)][:, :, None]
                 + (self.colstart[k][:, None, None] + np.arange(dc)[None, None, :]))
 
+    def vertex_pattern(self) -> sp.csr_matrix:
+        """The vertex-level pattern of H (1 where block (u, v) is stored, rows sorted), as
+        :func:`~gtsam_schwarz.util.vertex_pattern` reads it from a matrix of this pattern: the
+        structure of H before any linearization."""
+        indptr = np.zeros(self.nv + 1, dtype=np.int64)
+        np.cumsum(np.bincount(self.block_rows, minlength=self.nv), out=indptr[1:])
+        itype = np.int32 if max(self.nv, len(self.block_cols)) < 2**31 else np.int64
+        V = sp.csr_matrix((np.ones(len(self.block_cols)), self.block_cols.astype(itype), indptr.astype(itype)),
+                          shape=(self.nv, self.nv))
+        V.has_sorted_indices = True
+        return V
+
     def block_index(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Block numbers of blocks (rows, cols) (they must be in the pattern)."""
         rows = np.asarray(rows, dtype=np.int64)

@@ -22,6 +22,7 @@ from ..schwarz import create_preconditioner
 from ..dd.index_sets import IndexSets
 from ..solvers import EntryChange, SparseCholesky, SparsityPattern, block_diagonal, cholesky_cost, pattern_cholesky_cost, vertex_pattern
 from ..schwarz.memory import estimate_two_level, fit_memory
+from ..util.threads import side_thread
 from ..solvers.memory import FACTOR_BYTES, MATRIX_BYTES, InsufficientMemoryError, available_memory, gib
 from .params import LinearSolverParams
 from .records import SolveResult
@@ -189,6 +190,7 @@ class PreconditionedCG(LinearSolver):
         self._subdomain_change = None  # EntryChange from the matrix the subdomains were last factorized for
         self._subdomains_kept = False  # the last build kept earlier subdomain factorizations
         self._transported = False  # the last build carried the coarse level to new poses (TwoLevelSchwarz.transport)
+        self._decomposing = None  # the decomposition started by :meth:`prepare` (a Future), until taken
 
     def n_subdomains(self) -> int:
         p = self.params
@@ -198,18 +200,41 @@ class PreconditionedCG(LinearSolver):
         dims = np.diff(self.offsets)
         return default_subdomains(nv, p.subdomain_size, int(np.bincount(dims).argmax()) if nv else 3, p.inexact_krylov)
 
+    # graphs from this many vertices start their decomposition ahead of the first solve (:meth:`prepare`)
+    AHEAD_FROM = 20_000
+
+    def prepare(self, vertices: sp.csr_matrix, geometry=None) -> None:
+        """Start the decomposition on the side thread before the first linearization, from H's vertex
+        pattern ``vertices`` (the linearizer's fixed pattern) and the poses: it then runs beside the
+        linearization and the automatic choice's analysis instead of after them (graphs from
+        ``AHEAD_FROM`` vertices; :meth:`_decompose` takes the result)."""
+        if self.decomposition is not None or self._decomposing is not None or vertices.shape[0] < self.AHEAD_FROM:
+            return
+        structure = GraphStructure.from_vertex_pattern(vertices, self.offsets)
+        coordinates = self._coordinates(geometry)   # read here: the poses may move once the loop runs
+        self._decomposing = side_thread().submit(self._decompose_structure, structure, coordinates)
+
+    def _coordinates(self, geometry):
+        """The poses' positions for the geometric partition (None where it is not asked for)."""
+        if geometry is None or self.params.partition not in ("auto", "geometric"):
+            return None
+        g = geometry() if callable(geometry) else geometry
+        return None if g is None else g.positions
+
+    def _decompose_structure(self, structure: GraphStructure, coordinates):
+        p = self.params
+        return decompose(structure, self.n_subdomains(), p.partition, p.overlap_layers(), p.grow_along, coordinates)
+
     def _decompose(self, H, geometry=None):
-        """The decomposition (made on the first call): ``geometry`` (a :class:`VertexGeometry` or a
-        callable giving one) lends the poses' positions to the geometric partition."""
+        """The decomposition (made on the first call, or started by :meth:`prepare`): ``geometry`` (a
+        :class:`VertexGeometry` or a callable giving one) lends the poses' positions to the geometric
+        partition."""
+        if self.decomposition is None and self._decomposing is not None:
+            job, self._decomposing = self._decomposing, None
+            self.decomposition = job.result()
         if self.decomposition is None:
-            p = self.params
-            structure = GraphStructure.from_matrix(H, self.offsets)
-            coordinates = None
-            if geometry is not None and p.partition in ("auto", "geometric"):
-                g = geometry() if callable(geometry) else geometry
-                coordinates = None if g is None else g.positions
-            self.decomposition = decompose(structure, self.n_subdomains(), p.partition, p.overlap_layers(),
-                                           p.grow_along, coordinates)
+            self.decomposition = self._decompose_structure(GraphStructure.from_matrix(H, self.offsets),
+                                                           self._coordinates(geometry))
         return self.decomposition
 
     def moved(self, step_max: float) -> None:
@@ -457,6 +482,31 @@ class AutoSolver(LinearSolver):
         self.reason = ""
         self.model = CostModel(inexact=params.inexact_krylov)
         self.on_choice = None  # called with the choice once made (the optimizer frees memory for a build)
+        self._ahead = None  # (direct's predicted cost, the Schwarz solver whose decomposition started) of prepare()
+
+    def prepare(self, vertices: sp.csr_matrix, geometry=None) -> None:
+        """Before the first linearization, from H's vertex pattern: direct's cost (the same analysis
+        :meth:`choose` makes of H) and, where Schwarz passes the screen, its decomposition started on
+        the side thread (:meth:`PreconditionedCG.prepare`). :meth:`choose` still decides, on H."""
+        if self.chosen is not None or self._ahead is not None or vertices.shape[0] < PreconditionedCG.AHEAD_FROM:
+            return
+        dims = np.diff(np.asarray(self.offsets, dtype=np.int64))
+        nnz = int(np.sum(dims[np.repeat(np.arange(vertices.shape[0]), np.diff(vertices.indptr))] * dims[vertices.indices]))
+        direct = pattern_cholesky_cost(vertices, dims, nnz, natural=True)
+        cg = None
+        if not self._screened(direct, nnz):
+            cg = PreconditionedCG(self._schwarz_params(), self.offsets, self.translation_mask)
+            cg.prepare(vertices, geometry)
+        self._ahead = (nnz, direct, cg)
+
+    def _schwarz_params(self) -> LinearSolverParams:
+        return LinearSolverParams(**{**vars(self.params), "preconditioner": self.schwarz_name})
+
+    def _screened(self, direct, nnz: int) -> bool:
+        """Whether direct wins without a Schwarz estimate: predicted faster than the floor of any
+        Schwarz solve, and its factor fits."""
+        direct_bytes = FACTOR_BYTES * direct.nnz_L + MATRIX_BYTES * nnz
+        return self.model.direct(direct) <= self.model.schwarz_floor(nnz) and direct_bytes <= available_memory(self.params.memory_limit)
 
     @property
     def decomposition(self):
@@ -465,19 +515,24 @@ class AutoSolver(LinearSolver):
     def choose(self, H, geometry: Geometry | None = None) -> LinearSolver:
         """Predict both costs and keep the cheaper solver (its name in ``choice``, why in ``reason``).
         ``geometry``: the poses of the first solve (its coarse columns are then computed once)."""
-        direct = cholesky_cost(H, self.offsets, natural=True)
+        ahead, self._ahead = self._ahead, None
+        if ahead is not None and ahead[0] == H.nnz:   # prepare() analysed H's pattern: the same cost
+            direct, cg = ahead[1], ahead[2]
+        else:
+            direct, cg = cholesky_cost(H, self.offsets, natural=True), None
         t_direct = self.model.direct(direct)
-        params = LinearSolverParams(**{**vars(self.params), "preconditioner": self.schwarz_name})
-        cg = PreconditionedCG(params, self.offsets, self.translation_mask)
+        params = self._schwarz_params()
         floor = self.model.schwarz_floor(H.nnz)
         direct_bytes = FACTOR_BYTES * direct.nnz_L + MATRIX_BYTES * H.nnz
         available = available_memory(self.params.memory_limit)
-        if t_direct <= floor and direct_bytes <= available:  # the screen: Schwarz cannot win, no estimate
+        if self._screened(direct, H.nnz):  # the screen: Schwarz cannot win, no estimate
             self.choice, self.chosen = "direct", self._direct(t_direct, direct)
             self.reason = (f"nnz(L) {direct.nnz_L:.3g} ({direct.fill:.1f}x nnz(H)), {direct.flops:.3g} flops: "
                            f"direct {t_direct:.3g} s per solve (predicted) < {floor:.3g} s, the time of "
                            f"{self.model.SCHWARZ_OVERHEAD * self.model.SCREEN_ITERATIONS:g} SpMVs (Schwarz cannot win)")
             return self._chose()
+        if cg is None:
+            cg = PreconditionedCG(params, self.offsets, self.translation_mask)
         dec = cg._decompose(H, geometry)
         M = create_preconditioner(self.schwarz_name, H.shape[0], dec, self.translation_mask,
                                   interface_grouping=params.interface_grouping, coarse_modes=params.coarse_modes,

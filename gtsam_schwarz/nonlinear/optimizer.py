@@ -138,6 +138,8 @@ class SchwarzOptimizer:
 
     # -- pieces ----------------------------------------------------------------------------
     def _linearize(self) -> LinearSystem:
+        if self.anchors is None:   # the first linearization: the linear solver's pattern work goes first
+            self._prepare_linear_solver()
         t0 = time.perf_counter()
         system = self.linearizer.linearize(self._state)
         total = time.perf_counter() - t0  # phases: GTSAM's path splits off its export to scipy
@@ -150,6 +152,16 @@ class SchwarzOptimizer:
                                            system.diagonal)
             self._anchor_dofs = vertex_dofs(self.anchors, self.linearizer.offsets) if len(self.anchors) else None
         return system
+
+    def _prepare_linear_solver(self) -> None:
+        """Hand the linear solver H's vertex pattern (the native linearizer's fixed pattern) and the
+        poses before the first linearization: its decomposition starts on the side thread and runs
+        beside that linearization (lawnmower 600x600: ~0.4 s of one core's symbolic work)."""
+        prepare = getattr(self.linear_solver, "prepare", None)
+        pattern = getattr(self.linearizer, "pattern", None)
+        if prepare is not None and hasattr(pattern, "vertex_pattern"):
+            state = self._state
+            prepare(pattern.vertex_pattern(), lambda: self.linearizer.geometry(state))
 
     def _release_scratch(self) -> None:
         """Let the linearizer drop its scratch arrays before a Schwarz build (its memory peak). Not for
