@@ -110,10 +110,13 @@ class TwoLevelSchwarz(SumOperator):
     def setup(self, A):
         """Interface components and the harmonic-extension plan (symbolic, once per graph)."""
         bound_heap_fragmentation()
+        local = self.one_level.solver
+        # one fill-reducing order for the subdomain blocks and their interiors, found on the side thread
+        # (CHOLMOD's ordering holds no GIL) while the interface is found here (1M 2D poses: 1.0 and 0.2 s)
+        ordering = None if on_local_thread() else side_thread().submit(local.order_vertices, A)
         self.interface = find_interface(self.decomposition, self.interface_grouping)
         order = None
-        local = self.one_level.solver
-        if local.order_vertices(A):  # one fill-reducing order for the subdomain blocks and their interiors
+        if (ordering.result() if ordering is not None else local.order_vertices(A)):
             sets = local.sets
             order = (sets.vertices, np.repeat(np.arange(sets.count), np.diff(sets.vertex_ptr)))
         self.extension = HarmonicExtension(self.decomposition, self.interface, vertex_order=order)
