@@ -243,6 +243,15 @@ class PreconditionedCG(LinearSolver):
         if release is not None and self._lag_cap() is None and not self._may_transport():
             release()  # the next solve rebuilds: drop what it replaces now
 
+    def ahead(self, geometry) -> None:
+        """The poses moved (an accepted step) and the next linearization comes: where the next solve
+        may carry the coarse level to them (:meth:`_may_transport`) and cannot keep M lagged (the
+        poses moved at least ``lag_distance``), Φ's multiplication starts now on the side thread
+        (``TwoLevelSchwarz.transport_ahead``); ``geometry``: a callable giving the poses."""
+        M = self.operator
+        if self._may_transport() and self._lag_cap() is None and hasattr(M, "transport_ahead"):
+            M.transport_ahead(geometry())
+
     def _may_transport(self) -> bool:
         """Whether the next solve may carry the coarse level to the new poses (and keep the subdomain
         factorizations): then they are kept until that solve's test of H's change."""
@@ -292,6 +301,8 @@ class PreconditionedCG(LinearSolver):
         M = self.operator
         self._rebuilt = not (lag and M is not None)
         if M is None or (not lag and not p.reuse_symbolic):
+            if M is not None and hasattr(M, "settle_transport"):
+                M.settle_transport(undo=False)   # replaced: its multiplication under way only finishes
             M = create_preconditioner(p.preconditioner, H.shape[0], self._decompose(H, geometry), self.translation_mask,
                                       interface_grouping=p.interface_grouping, coarse_modes=p.coarse_modes,
                                       memory_limit=p.memory_limit)
@@ -299,6 +310,9 @@ class PreconditionedCG(LinearSolver):
             self.operator = M
             self._subdomain_change = None
         elif lag:
+            settle = getattr(M, "settle_transport", None)
+            if settle is not None:
+                settle()   # Φ as it was built: a multiplication started ahead is undone
             return M
         keep = (not subdomains and p.lagged_preconditioner and self._subdomain_change is not None
                 and getattr(M, "subdomains_factored", False) and self._subdomain_change(H) <= p.subdomain_lag_change)
@@ -602,6 +616,11 @@ class AutoSolver(LinearSolver):
     def moved(self, step_max: float) -> None:
         if self.chosen is not None:
             self.chosen.moved(step_max)
+
+    def ahead(self, geometry) -> None:
+        ahead = getattr(self.chosen, "ahead", None)
+        if ahead is not None:
+            ahead(geometry)
 
     def release(self) -> None:
         if self.chosen is not None:

@@ -140,6 +140,9 @@ class SchwarzOptimizer:
     def _linearize(self) -> LinearSystem:
         if self.anchors is None:   # the first linearization: the linear solver's pattern work goes first
             self._prepare_linear_solver()
+        elif hasattr(self.linear_solver, "ahead"):   # later ones: its work on the new poses alone
+            state = self._state
+            self.linear_solver.ahead(lambda: self.linearizer.geometry(state))
         t0 = time.perf_counter()
         system = self.linearizer.linearize(self._state)
         total = time.perf_counter() - t0  # phases: GTSAM's path splits off its export to scipy

@@ -91,6 +91,7 @@ class TwoLevelSchwarz(SumOperator):
         self.interface = self.extension = self.coarse_space = self.coarse = None
         self._subdomains_factored = False
         self._geometry = None  # the poses Φ's rigid modes are written at (a build's or the last transport's)
+        self._ahead = None  # (old poses, new poses, vertices, Future) of transport_ahead, until settled
 
     @classmethod
     def create(cls, n, decomposition=None, translation_mask=None, kind="gdsw", rotation=True,
@@ -127,6 +128,7 @@ class TwoLevelSchwarz(SumOperator):
         """Drop Φ, A_0 and (``factors``; None: in the low-memory mode) the subdomain factors until the
         next :meth:`update`, which refactors them with a new analysis: for a caller that knows the
         next solve rebuilds (they then do not sit beside the next linearization's arrays)."""
+        self.settle_transport(undo=False)   # Φ is dropped: a multiplication under way only finishes
         self.coarse_space = self.coarse = self._geometry = None
         self.parts = [self.one_level]
         if factors or (factors is None and self.memory is not None and self.memory.low_memory):
@@ -138,6 +140,7 @@ class TwoLevelSchwarz(SumOperator):
         and symbolic factorizations are kept; numbers, Φ and A_0 are recomputed. ``subdomains=False``
         keeps the one-level part's factorizations of an earlier A where they are still held
         (:meth:`update_coarse`)."""
+        self.settle_transport(undo=False)   # Φ is rebuilt: a multiplication under way only finishes
         if self.extension is None:
             self.setup(A)
         if self.memory is None:  # before the heavy work: estimate the peak, adapt or stop
@@ -216,14 +219,45 @@ class TwoLevelSchwarz(SumOperator):
         solve 15 CG against 14 after a full rebuild and 27-30 with Φ kept as it was. It costs a
         multiplication of Φ's d × d vertex blocks (no extension, no A_0, no factorization).
         Without it (:meth:`can_transport` False) this is :meth:`update_coarse`."""
-        vertices = self._transport_vertices(geometry)
-        if vertices is None:
-            return self.update_coarse(A, geometry)
-        self.coarse_space.basis.transform_vertex_rows(rigid_transport(self._geometry, geometry, vertices))
+        if not self.settle_transport(to=geometry):   # not multiplied ahead (transport_ahead) to these poses
+            vertices = self._transport_vertices(geometry)
+            if vertices is None:
+                return self.update_coarse(A, geometry)
+            self._transform(self._geometry, geometry, vertices)
         self._geometry = geometry
         if not self._subdomains_factored:
             self.refactor_subdomains(A)
         return self
+
+    def transport_ahead(self, geometry: VertexGeometry) -> None:
+        """Start :meth:`transport`'s multiplication of Φ for ``geometry`` on the side thread, ahead of
+        the next solve (beside its linearization: lawnmower 1M poses ~0.8 s on one core): a
+        :meth:`transport` to the same poses then only waits for it; any other use of Φ first
+        settles it (:meth:`settle_transport`)."""
+        self.settle_transport()
+        vertices = self._transport_vertices(geometry)
+        if vertices is None or on_local_thread():
+            return
+        old = self._geometry
+        self._ahead = (old, geometry, vertices, side_thread().submit(self._transform, old, geometry, vertices))
+
+    def settle_transport(self, to: VertexGeometry | None = None, undo: bool = True) -> bool:
+        """Wait for a multiplication started by :meth:`transport_ahead`. Returns True where it went to
+        the poses ``to`` (Φ is at them now); otherwise, with ``undo``, Φ is carried back to the poses
+        of the coarse level (the inverse map: a lagged solve uses Φ as it was, to rounding)."""
+        if self._ahead is None:
+            return False
+        old, new, vertices, job = self._ahead
+        self._ahead = None
+        job.result()
+        if to is not None and _same_poses(new, to):
+            return True
+        if undo:
+            self._transform(new, old, vertices)
+        return False
+
+    def _transform(self, old: VertexGeometry, new: VertexGeometry, vertices: np.ndarray) -> None:
+        self.coarse_space.basis.transform_vertex_rows(rigid_transport(old, new, vertices))
 
     def _prepare_subdomains(self, A):
         """A future of the one-level solver's symbolic preparation for A on the side thread (None
@@ -244,3 +278,7 @@ class TwoLevelSchwarz(SumOperator):
     def subdomains_factored(self) -> bool:
         """Whether the one-level part holds factorizations (of the last full :meth:`update`'s A)."""
         return self._subdomains_factored
+
+
+def _same_poses(a: VertexGeometry, b: VertexGeometry) -> bool:
+    return a is b or (np.array_equal(a.positions, b.positions) and np.array_equal(a.rotations, b.rotations))
