@@ -23,6 +23,7 @@ import scipy.sparse as sp
 from ..dd.geometry import VertexGeometry
 from ..util import sorted_unique, with_small_pages
 from ..util.heap import populate_ahead
+from ..util.threads import background_thread
 from . import native_kernels as nk
 from .base import LinearSystem
 
@@ -82,6 +83,7 @@ def _insert_all(values: gtsam.Values, keys: list, poses, kind: str) -> None:
 # would wait behind it
 CONSTRUCTION_BYTES_PER_ENTRY = 20
 CONSTRUCTION_POPULATE_FROM = 64 << 20
+BACKGROUND_PLAN_FROM = 50_000  # entries of H from which its pattern and plan are made on the background thread
 _TAKE_CHUNK = 1 << 20  # entries of H gathered per np.take (int32 positions become intp a chunk at a time)
 
 
@@ -498,15 +500,54 @@ class NativeLinearizer:
         if other_graph is not None and (other_graph.size() or len(other_vars)):
             self._others = self._setup_others(other_graph, other_vars, values, var_index, rows, cols)
 
-        t0 = time.perf_counter()
-        self.pattern = nk.BlockPattern(self.dims, np.concatenate(rows) if rows else np.zeros(0, np.int64),
-                                       np.concatenate(cols) if cols else np.zeros(0, np.int64))
-        self._plan()
-        self.seconds_pattern = time.perf_counter() - t0
-        self.diagonal = self.pattern.diagonal_positions()
+        self.nnz_estimate = int(sum(d * d * nb for d, nb in blocks.items()))   # H's entries (exact without repeated pairs)
+        rows = np.concatenate(rows) if rows else np.zeros(0, np.int64)
+        cols = np.concatenate(cols) if cols else np.zeros(0, np.int64)
+        # the pattern and its gather plan are needed by the first linearization only: they are made on
+        # the background thread meanwhile (reading the start, the chordal start: 1M 2D poses ~1.8 s, of
+        # which ~1.1 s on one core), small graphs here
+        if self.nnz_estimate >= BACKGROUND_PLAN_FROM:
+            self._planning = background_thread().submit(self._make_plan, rows, cols)
+        else:
+            self._planning = None
+            self._make_plan(rows, cols)
         self._translation = self._translation_mask(values)
         self.seconds = {}
         self._buffers = {}
+
+    def _make_plan(self, rows: np.ndarray, cols: np.ndarray) -> None:
+        """The fixed CSR pattern of H (blocks of the coupled variable pairs ``rows``, ``cols``), its
+        diagonal and the gather plan (:meth:`_plan`)."""
+        t0 = time.perf_counter()
+        self._pattern = nk.BlockPattern(self.dims, rows, cols)
+        self._plan()
+        self._diagonal = self._pattern.diagonal_positions()
+        self._seconds_pattern = time.perf_counter() - t0
+
+    def _planned(self) -> None:
+        """Wait for the pattern and plan made on the background thread (re-raising its error)."""
+        job = self._planning
+        if job is not None:
+            job.result()
+            self._planning = None
+
+    @property
+    def pattern(self) -> nk.BlockPattern:
+        """H's fixed CSR pattern (waits for its construction)."""
+        self._planned()
+        return self._pattern
+
+    @property
+    def diagonal(self) -> np.ndarray:
+        """Positions of H's diagonal in its data."""
+        self._planned()
+        return self._diagonal
+
+    @property
+    def seconds_pattern(self) -> float:
+        """Seconds the pattern and its gather plan took (on whichever thread made them)."""
+        self._planned()
+        return self._seconds_pattern
 
     @staticmethod
     def _factors(d: int, spec: dict):
@@ -560,7 +601,7 @@ class NativeLinearizer:
 
     def _plan(self) -> None:
         """The source-array layout and the gather index that fills H's CSR data from it."""
-        P = self.pattern
+        P = self._pattern
         size = 0
         puts = []   # (block rows, block cols, base, coef): entry (a, b) of block t reads source base[t] + coef[a, b]
         for K in (self._k2, self._k3):
@@ -775,6 +816,7 @@ class NativeLinearizer:
 
     def linearize(self, state: NativeState) -> LinearSystem:
         """H (fixed CSR pattern), g = Σ JᵀW r and the error at ``state``, all native factors at once."""
+        self._planned()
         t1 = time.perf_counter()
         S = self._buffer("S", (self._src_size,))   # reused: H's data is a fresh gather of it
         S[self._zero] = 0.0

@@ -54,9 +54,13 @@ class SchwarzOptimizer:
         if linearizer is None:
             linearizer = make_linearizer(graph, initial, self.nonlinear_params.linearization)
         self.linearizer = linearizer
-        pattern = getattr(linearizer, "pattern", None)
-        if pattern is not None:  # faulted in on a helper thread while the start is computed (tuned heap only)
-            populate_ahead(FRESH_BYTES_PER_ENTRY * pattern.nnz)
+        # faulted in on a helper thread while the start is computed (tuned heap only); the native
+        # linearizer's estimate, not its pattern, which may still be in the making
+        nnz = getattr(linearizer, "nnz_estimate", None)
+        if nnz is None and getattr(linearizer, "pattern", None) is not None:
+            nnz = linearizer.pattern.nnz
+        if nnz is not None:
+            populate_ahead(FRESH_BYTES_PER_ENTRY * nnz)
         method = self.nonlinear_params.initialization
         # the chordal start's solver choice is analysed on the side thread while the start is read
         prepared = prepare_chordal(linearizer, self._chordal_solver()) if method != "file" and self.chordal_ahead else None

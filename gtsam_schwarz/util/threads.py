@@ -21,6 +21,13 @@ def side_thread() -> ThreadPoolExecutor:
     return _pool("side", 1)
 
 
+def background_thread() -> ThreadPoolExecutor:
+    """A thread for construction work that nobody waits for soon (the native linearizer's pattern and
+    gather plan, needed at the first linearization): apart from the side thread, whose jobs are
+    waited for within the step that starts them."""
+    return _pool("background", 1)
+
+
 def local_threads() -> ThreadPoolExecutor:
     """The threads that factorize and solve independent local blocks (CHOLMOD without the GIL)."""
     return _pool("local", WORKERS)
