@@ -490,10 +490,10 @@ class HarmonicExtension:
         with sharing_vertex_level():   # the groups' gathers read A's vertex level once
             side_by_side = len(self.groups) > 1 and not on_local_thread()
             if side_by_side:
-                # the groups' A_II factorized side by side first (CHOLMOD holds no GIL; lawnmower
-                # 1000x1000: 1.9 -> 1.1 s): all interior factors at once, as the memory estimate counts
-                for group in self.groups:
-                    group.prepare(A)
+                # the groups' A_II gathered and factorized side by side first (CHOLMOD holds no GIL;
+                # lawnmower 1000x1000: 1.9 -> 1.1 s), each group's positions on its thread too (one
+                # group's beside another's factorization): all interior factors at once, as the
+                # memory estimate counts
                 run_all(local_threads(), [lambda g=group: g.refactor(A) for group in self.groups])
             for group, gplan in zip(self.groups, plan["groups"]):
                 if not side_by_side:
