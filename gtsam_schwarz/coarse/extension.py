@@ -320,15 +320,13 @@ class HarmonicExtension:
         self.offsets = offsets
         self.n = decomposition.structure.n_dofs
         owner_dof = np.repeat(interface.interior_subdomain, np.diff(offsets))  # −1 on Γ
+        self._interior_subdomain = interface.interior_subdomain
         self.interior = np.flatnonzero(owner_dof >= 0)
         self.ordered = False
-        if vertex_order is not None:  # each interior vertex where it lies in its own subdomain's order
-            vertices, subdomain = vertex_order
-            own = vertices[interface.interior_subdomain[vertices] == subdomain]
-            if len(own) == np.count_nonzero(interface.interior_subdomain >= 0):
-                self.interior, self.ordered = vertex_dofs(own, offsets), True
         self.gamma = np.flatnonzero(owner_dof < 0)
         self.sub = owner_dof[self.interior]
+        if vertex_order is not None:
+            self.order_interiors(vertex_order)
         self.block_columns, self.max_groups = block_columns, max_groups
         self.keep_factors = True  # False: each group's A_II factorization is dropped after its solve
         # called once every group is extended (its factors dropped where not kept), before A_0: a
@@ -341,6 +339,16 @@ class HarmonicExtension:
         dims = np.unique(np.diff(offsets))
         self.vertex_dofs = int(dims[0]) if len(dims) == 1 else 1  # dofs of every vertex (1: not all the same)
         self._block = 1  # d where Φ's local rows come in whole vertices (set by the plan): A_0 in blocks
+
+    def order_interiors(self, vertex_order: tuple[np.ndarray, np.ndarray]) -> None:
+        """Put the interior dofs in ``vertex_order`` (vertices, their subdomains): each interior vertex
+        where it lies in its own subdomain's fill-reducing order (before the first extension)."""
+        vertices, subdomain = vertex_order
+        owner = self._interior_subdomain
+        own = vertices[owner[vertices] == subdomain]
+        if len(own) == np.count_nonzero(owner >= 0):
+            self.interior, self.ordered = vertex_dofs(own, self.offsets), True
+            self.sub = owner[own].repeat(np.diff(self.offsets)[own])
 
     def _plan(self, gamma_rows, gamma_cols, col_subdomains) -> dict:
         """Symbolic part of one extension: the groups, the pattern of Φ_Γ (interface rows) and of

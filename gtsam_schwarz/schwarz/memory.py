@@ -70,16 +70,19 @@ def estimate_two_level(M, A, geometry=None) -> MemoryEstimate:
     S = sp.csc_matrix(dec.overlapping)
     S.sort_indices()
     vsets = IndexSets(indices=S.indices.astype(np.int64), ptr=S.indptr.astype(np.int64), n=S.shape[0])
+    nI = len(ext.interior)
+    # the coarse columns first: the subdomain blocks' order may still be in the making (TwoLevelSchwarz.setup)
+    rows, cols, _, column_component, col_subdomains = coarse_columns(
+        dec, M.interface, M.kind, geometry if M.uses_geometry else None, M.rotation, M.translation_mask,
+        keep=geometry is not None)
+    if hasattr(M, "ordered"):
+        M.ordered()
     solver = getattr(getattr(M, "one_level", None), "solver", None)
     blocks = solver.take_vertex_blocks() if hasattr(solver, "take_vertex_blocks") else None
     if blocks is None or blocks.shape[0] != len(vsets.indices):   # not formed by the one-level setup
         blocks = block_diagonal(vertex_pattern(A, offsets), vsets)
     local = pattern_cholesky_cost(blocks, np.diff(offsets)[vsets.indices])
     n_block = int(np.diff(offsets)[vsets.indices].sum())
-    nI = len(ext.interior)
-    rows, cols, _, column_component, col_subdomains = coarse_columns(
-        dec, M.interface, M.kind, geometry if M.uses_geometry else None, M.rotation, M.translation_mask,
-        keep=geometry is not None)
     nc = len(column_component)
     K_sub = np.diff(sp.csr_matrix(col_subdomains.T).indptr) if nc else np.zeros(dec.n_subdomains, np.int64)
     nnz_phi = float(np.sum(K_sub[ext.sub])) + len(rows)

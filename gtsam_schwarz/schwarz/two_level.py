@@ -92,6 +92,7 @@ class TwoLevelSchwarz(SumOperator):
         self._subdomains_factored = False
         self._geometry = None  # the poses Φ's rigid modes are written at (a build's or the last transport's)
         self._ahead = None  # (old poses, new poses, vertices, Future) of transport_ahead, until settled
+        self._ordering = None  # the subdomain blocks' order being found by setup (a Future), until ordered()
 
     @classmethod
     def create(cls, n, decomposition=None, translation_mask=None, kind="gdsw", rotation=True,
@@ -109,20 +110,31 @@ class TwoLevelSchwarz(SumOperator):
         return self.coarse_space.size if self.coarse_space is not None else 0
 
     def setup(self, A):
-        """Interface components and the harmonic-extension plan (symbolic, once per graph)."""
+        """Interface components and the harmonic extension (symbolic, once per graph). The subdomain
+        blocks' fill-reducing order, which the extension's interiors then follow, is found on the side
+        thread (CHOLMOD's ordering holds no GIL; 1M 2D poses 1.0 s) while the interface is found and
+        the memory estimate's coarse columns are counted here; :meth:`ordered` takes it."""
         bound_heap_fragmentation()
         local = self.one_level.solver
-        # one fill-reducing order for the subdomain blocks and their interiors, found on the side thread
-        # (CHOLMOD's ordering holds no GIL) while the interface is found here (1M 2D poses: 1.0 and 0.2 s)
-        ordering = None if on_local_thread() else side_thread().submit(local.order_vertices, A)
+        self._ordering = None if on_local_thread() else side_thread().submit(local.order_vertices, A)
         self.interface = find_interface(self.decomposition, self.interface_grouping)
-        order = None
-        if (ordering.result() if ordering is not None else local.order_vertices(A)):
-            sets = local.sets
-            order = (sets.vertices, np.repeat(np.arange(sets.count), np.diff(sets.vertex_ptr)))
-        self.extension = HarmonicExtension(self.decomposition, self.interface, vertex_order=order)
+        self.extension = HarmonicExtension(self.decomposition, self.interface)
+        if self._ordering is None:
+            self._order_interiors(local.order_vertices(A))
         self.memory = None
         return self
+
+    def ordered(self) -> None:
+        """Wait for the subdomain blocks' order found by :meth:`setup` and put the extension's
+        interiors in it (before anything reads the blocks' order or the interiors' positions)."""
+        job, self._ordering = self._ordering, None
+        if job is not None:
+            self._order_interiors(job.result())
+
+    def _order_interiors(self, reordered: bool) -> None:
+        if reordered:   # one fill-reducing order for the subdomain blocks and their interiors
+            sets = self.one_level.solver.sets
+            self.extension.order_interiors((sets.vertices, np.repeat(np.arange(sets.count), np.diff(sets.vertex_ptr))))
 
     def release(self, factors: bool | None = None) -> None:
         """Drop Φ, A_0 and (``factors``; None: in the low-memory mode) the subdomain factors until the
@@ -143,6 +155,7 @@ class TwoLevelSchwarz(SumOperator):
         self.settle_transport(undo=False)   # Φ is rebuilt: a multiplication under way only finishes
         if self.extension is None:
             self.setup(A)
+        self.ordered()
         if self.memory is None:  # before the heavy work: estimate the peak, adapt or stop
             self.memory = fit_memory(self, A, self.memory_limit, self.kind, geometry=geometry)
         low = self.memory.low_memory

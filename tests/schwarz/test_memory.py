@@ -194,6 +194,7 @@ def test_estimate_takes_the_one_level_setups_vertex_blocks_and_agrees_with_its_o
 
     _, H, dec, _, mask = survey
     M = TwoLevelSchwarz(dec, kind="rgdsw", translation_mask=mask).setup(H)
+    M.ordered()   # the blocks' order, found on the side thread
     handed = M.one_level.solver._vertex_blocks is not None
     assert handed == (SPARSE_BACKEND == "cholmod")
     first = estimate_two_level(M, H)
