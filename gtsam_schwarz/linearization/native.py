@@ -83,7 +83,11 @@ def _insert_all(values: gtsam.Values, keys: list, poses, kind: str) -> None:
 # would wait behind it
 CONSTRUCTION_BYTES_PER_ENTRY = 20
 CONSTRUCTION_POPULATE_FROM = 64 << 20
-BACKGROUND_PLAN_FROM = 50_000  # entries of H from which its pattern and plan are made on the background thread
+# entries of H from which its pattern and plan are made on the background thread. Fresh bench children,
+# alternated with the commit before: the 262k-pose model problem (7M entries) 2.44 / 2.23 / 2.16 ->
+# 2.30 / 2.16 / 1.89 s, peak 897 -> 814-829 MiB; sq32x128 (0.74M) 0.134-0.140 -> 0.139-0.145 s and
+# sq128x64 (1.5M) within the spread: below, a thread start and the chordal start's GIL cost what it saves
+BACKGROUND_PLAN_FROM = 2_000_000
 _TAKE_CHUNK = 1 << 20  # entries of H gathered per np.take (int32 positions become intp a chunk at a time)
 
 
