@@ -496,7 +496,7 @@ class AutoSolver(LinearSolver):
         self.reason = ""
         self.model = CostModel(inexact=params.inexact_krylov)
         self.on_choice = None  # called with the choice once made (the optimizer frees memory for a build)
-        self._ahead = None  # (direct's predicted cost, the Schwarz solver whose decomposition started) of prepare()
+        self._ahead = None  # prepare()'s (nnz(H), direct's predicted cost, the Schwarz solver whose decomposition started)
 
     def prepare(self, vertices: sp.csr_matrix, geometry=None) -> None:
         """Before the first linearization, from H's vertex pattern: direct's cost (the same analysis
