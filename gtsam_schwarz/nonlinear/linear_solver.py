@@ -203,9 +203,9 @@ class PreconditionedCG(LinearSolver):
     # graphs from this many vertices start their decomposition ahead of the first solve (:meth:`prepare`)
     AHEAD_FROM = 20_000
 
-    def prepare(self, vertices: sp.csr_matrix, geometry=None) -> None:
+    def prepare(self, vertices: sp.csr_matrix, nnz: int, geometry=None) -> None:
         """Start the decomposition on the side thread before the first linearization, from H's vertex
-        pattern ``vertices`` (the linearizer's fixed pattern) and the poses: it then runs beside the
+        pattern ``vertices`` (the linearizer's fixed pattern, ``nnz`` entries of H) and the poses: it then runs beside the
         linearization and the automatic choice's analysis instead of after them (graphs from
         ``AHEAD_FROM`` vertices; :meth:`_decompose` takes the result)."""
         if self.decomposition is not None or self._decomposing is not None or vertices.shape[0] < self.AHEAD_FROM:
@@ -498,19 +498,17 @@ class AutoSolver(LinearSolver):
         self.on_choice = None  # called with the choice once made (the optimizer frees memory for a build)
         self._ahead = None  # prepare()'s (nnz(H), direct's predicted cost, the Schwarz solver whose decomposition started)
 
-    def prepare(self, vertices: sp.csr_matrix, geometry=None) -> None:
-        """Before the first linearization, from H's vertex pattern: direct's cost (the same analysis
+    def prepare(self, vertices: sp.csr_matrix, nnz: int, geometry=None) -> None:
+        """Before the first linearization, from H's vertex pattern (``nnz`` entries of H): direct's cost (the same analysis
         :meth:`choose` makes of H) and, where Schwarz passes the screen, its decomposition started on
         the side thread (:meth:`PreconditionedCG.prepare`). :meth:`choose` still decides, on H."""
         if self.chosen is not None or self._ahead is not None or vertices.shape[0] < PreconditionedCG.AHEAD_FROM:
             return
-        dims = np.diff(np.asarray(self.offsets, dtype=np.int64))
-        nnz = int(np.sum(dims[np.repeat(np.arange(vertices.shape[0]), np.diff(vertices.indptr))] * dims[vertices.indices]))
-        direct = pattern_cholesky_cost(vertices, dims, nnz, natural=True)
+        direct = pattern_cholesky_cost(vertices, np.diff(np.asarray(self.offsets, dtype=np.int64)), nnz, natural=True)
         cg = None
         if not self._screened(direct, nnz):
             cg = PreconditionedCG(self._schwarz_params(), self.offsets, self.translation_mask)
-            cg.prepare(vertices, geometry)
+            cg.prepare(vertices, nnz, geometry)
         self._ahead = (nnz, direct, cg)
 
     def _schwarz_params(self) -> LinearSolverParams:

@@ -168,7 +168,7 @@ class SchwarzOptimizer:
         pattern = getattr(self.linearizer, "pattern", None)
         if prepare is not None and hasattr(pattern, "vertex_pattern"):
             state = self._state
-            prepare(pattern.vertex_pattern(), lambda: self.linearizer.geometry(state))
+            prepare(pattern.vertex_pattern(), pattern.nnz, lambda: self.linearizer.geometry(state))
 
     def _release_scratch(self) -> None:
         """Let the linearizer drop its scratch arrays before a Schwarz build (its memory peak). Not for
