@@ -155,9 +155,10 @@ class TwoLevelSchwarz(SumOperator):
         self.settle_transport(undo=False)   # Φ is rebuilt: a multiplication under way only finishes
         if self.extension is None:
             self.setup(A)
-        self.ordered()
-        if self.memory is None:  # before the heavy work: estimate the peak, adapt or stop
+        if self.memory is None:  # before the heavy work: estimate the peak, adapt or stop (its coarse
+            # columns are counted while the blocks' order is still found; it then waits for the order)
             self.memory = fit_memory(self, A, self.memory_limit, self.kind, geometry=geometry)
+        self.ordered()
         low = self.memory.low_memory
         self.extension.block_columns = self.memory.block_columns
         self.extension.keep_factors = not low
