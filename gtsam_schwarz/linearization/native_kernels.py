@@ -879,6 +879,9 @@ def in_sorted(a: np.ndarray, sorted_b: np.ndarray) -> np.ndarray:
 
 
 _CHUNK = 1 << 16   # blocks per chunk of the plan's writes (temporaries of ~5 MB with 3×3 blocks)
+# entries of H up to which the gather index is laid out by a BSR→CSR conversion (faster, two more
+# index-sized temporaries: at 1M model-problem poses, 28M entries, the peak rose 2 824 → 2 906 MiB)
+BSR_INDEX_MAX = 4_000_000
 
 
 class BlockPattern:
@@ -991,20 +994,33 @@ class BlockPattern:
         base[t] + coef[a, b] for every (rows, cols, base, coef) in ``assignments`` (blocks at most once),
         others ``fill``. Written a chunk of blocks at a time: no (t, d, d) temporaries. ``dtype``: of
         the index (int32 where the source is that small: half the memory, written directly)."""
-        if self.uniform:   # written block by block (d² contiguous entries each), then laid out by
-            # scipy's BSR→CSR conversion, as the pattern itself (sq128x64: 12-17 → 5 ms)
+        if self.uniform and self.nnz <= BSR_INDEX_MAX:   # written block by block (d² contiguous entries
+            # each), then laid out by scipy's BSR→CSR conversion, as the pattern itself: sq128x64 12-17 →
+            # 7 ms, for two index-sized temporaries more (above BSR_INDEX_MAX the scatter below)
             d = self.d
             blocks = [(self.block_index(rows, cols), base, coef) for rows, cols, base, coef in assignments]
             covered = sum(len(k) for k, _, _ in blocks) == len(self.block_keys)   # each block at most once
             nb = len(self.block_keys)
             by_block = np.empty((nb, d, d), dtype=dtype) if covered else np.full((nb, d, d), fill, dtype=dtype)
             for k, base, coef in blocks:
-                for lo in range(0, len(k), _CHUNK):   # chunks of blocks: small temporaries
-                    by_block[k[lo:lo + _CHUNK]] = np.asarray(base[lo:lo + _CHUNK])[:, None, None] + coef
+                by_block[k] = np.asarray(base)[:, None, None] + coef
             src = sp.bsr_matrix((by_block, self.block_cols.astype(self.index_dtype), self._bptr.astype(self.index_dtype)),
                                 shape=(self.n, self.n), blocksize=(d, d)).tocsr().data
             if src.dtype != dtype:
                 raise RuntimeError("unexpected BSR→CSR conversion of the source index")
+            return src
+        if self.uniform:   # entry (a, b) of block k in row v: bptr[v]·(d² − d) + k·d + a·rowlen[v]·d + b
+            d = self.d
+            blocks = [(self.block_index(rows, cols), base, coef) for rows, cols, base, coef in assignments]
+            covered = sum(len(k) for k, _, _ in blocks) == len(self.block_keys)   # each block at most once
+            src = np.empty(self.nnz, dtype=dtype) if covered else np.full(self.nnz, fill, dtype=dtype)
+            a = np.arange(d)
+            for k, base, coef in blocks:
+                for lo in range(0, len(k), _CHUNK):   # chunks of blocks: small temporaries, local writes
+                    kc = k[lo:lo + _CHUNK]
+                    v = self.block_rows[kc]
+                    row = (self._bptr[v] * (d * d - d) + kc * d)[:, None] + (self._rowlen[v] * d)[:, None] * a
+                    src[row[:, :, None] + a] = np.asarray(base[lo:lo + _CHUNK])[:, None, None] + coef
             return src
         src = np.full(self.nnz, fill, dtype=dtype)
         for rows, cols, base, coef in assignments:

@@ -17,11 +17,15 @@ def _reference(P: BlockPattern, assignments, fill: int) -> np.ndarray:
     return src
 
 
+@pytest.mark.parametrize("bsr_max", [0, 10**9])
 @pytest.mark.parametrize("dims", [[3] * 40, [6] * 25, [3, 6] * 15])
 @pytest.mark.parametrize("all_blocks", [True, False])
-def test_source_index_is_the_entrywise_assignment(dims, all_blocks):
-    """Uniform (BSR-laid) and mixed block sizes, every block assigned or some left to ``fill``, int32
-    and int64: the same index as writing every entry at its CSR position."""
+def test_source_index_is_the_entrywise_assignment(monkeypatch, dims, all_blocks, bsr_max):
+    """Uniform (laid out by BSR→CSR, or scattered above BSR_INDEX_MAX) and mixed block sizes, every
+    block assigned or some left to ``fill``, int32 and int64: the same index as writing every entry at
+    its CSR position."""
+    from gtsam_schwarz.linearization import native_kernels
+    monkeypatch.setattr(native_kernels, "BSR_INDEX_MAX", bsr_max)
     rng = np.random.default_rng(len(dims))
     dims = np.asarray(dims)
     nv = len(dims)
