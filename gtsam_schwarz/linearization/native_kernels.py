@@ -879,8 +879,9 @@ def in_sorted(a: np.ndarray, sorted_b: np.ndarray) -> np.ndarray:
 
 
 _CHUNK = 1 << 16   # blocks per chunk of the plan's writes (temporaries of ~5 MB with 3×3 blocks)
-# entries of H up to which the gather index is laid out by a BSR→CSR conversion (faster, two more
-# index-sized temporaries: at 1M model-problem poses, 28M entries, the peak rose 2 824 → 2 906 MiB)
+# entries of H up to which the gather index is laid out by a BSR→CSR conversion: faster, but two more
+# index-sized temporaries for a moment (8 bytes per entry of H: 224 MB at the 1M-pose model problem),
+# where from 2M entries the plan runs on its background thread anyway (BACKGROUND_PLAN_FROM)
 BSR_INDEX_MAX = 4_000_000
 
 
