@@ -993,29 +993,26 @@ class BlockPattern:
     def source_index(self, assignments, fill: int, dtype=np.int64) -> np.ndarray:
         """Gather index of the CSR data: entry (a, b) of block (rows[t], cols[t]) takes source
         base[t] + coef[a, b] for every (rows, cols, base, coef) in ``assignments`` (blocks at most once),
-        others ``fill``. Written a chunk of blocks at a time: no (t, d, d) temporaries. ``dtype``: of
-        the index (int32 where the source is that small: half the memory, written directly)."""
-        if self.uniform and self.nnz <= BSR_INDEX_MAX:   # written block by block (d² contiguous entries
-            # each), then laid out by scipy's BSR→CSR conversion, as the pattern itself: sq128x64 12-17 →
-            # 7 ms, for two index-sized temporaries more (above BSR_INDEX_MAX the scatter below)
+        others ``fill``. ``dtype``: of the index (int32 where the source is that small: half the memory,
+        written directly). Uniform blocks up to ``BSR_INDEX_MAX`` entries: written block by block (d²
+        contiguous entries each) and laid out by scipy's BSR→CSR conversion, as the pattern itself
+        (sq128x64 12-17 → 7 ms, two index-sized temporaries more); above, scattered a chunk of blocks
+        at a time (no (t, d, d) temporaries)."""
+        if self.uniform:
             d = self.d
             blocks = [(self.block_index(rows, cols), base, coef) for rows, cols, base, coef in assignments]
             covered = sum(len(k) for k, _, _ in blocks) == len(self.block_keys)   # each block at most once
-            nb = len(self.block_keys)
-            by_block = np.empty((nb, d, d), dtype=dtype) if covered else np.full((nb, d, d), fill, dtype=dtype)
-            for k, base, coef in blocks:
-                by_block[k] = np.asarray(base)[:, None, None] + coef
-            src = sp.bsr_matrix((by_block, self.block_cols.astype(self.index_dtype), self._bptr.astype(self.index_dtype)),
-                                shape=(self.n, self.n), blocksize=(d, d)).tocsr().data
-            if src.dtype != dtype:
-                raise RuntimeError("unexpected BSR→CSR conversion of the source index")
-            return src
-        if self.uniform:   # entry (a, b) of block k in row v: bptr[v]·(d² − d) + k·d + a·rowlen[v]·d + b
-            d = self.d
-            blocks = [(self.block_index(rows, cols), base, coef) for rows, cols, base, coef in assignments]
-            covered = sum(len(k) for k, _, _ in blocks) == len(self.block_keys)   # each block at most once
-            src = np.empty(self.nnz, dtype=dtype) if covered else np.full(self.nnz, fill, dtype=dtype)
-            a = np.arange(d)
+            shape = (len(self.block_keys), d, d) if self.nnz <= BSR_INDEX_MAX else (self.nnz,)
+            src = np.empty(shape, dtype=dtype) if covered else np.full(shape, fill, dtype=dtype)
+            if len(shape) == 3:   # in block order, then the conversion
+                for k, base, coef in blocks:
+                    src[k] = np.asarray(base)[:, None, None] + coef
+                src = sp.bsr_matrix((src, self.block_cols.astype(self.index_dtype), self._bptr.astype(self.index_dtype)),
+                                    shape=(self.n, self.n), blocksize=(d, d)).tocsr().data
+                if src.dtype != dtype:
+                    raise RuntimeError("unexpected BSR→CSR conversion of the source index")
+                return src
+            a = np.arange(d)   # entry (a, b) of block k in row v: bptr[v]·(d² − d) + k·d + a·rowlen[v]·d + b
             for k, base, coef in blocks:
                 for lo in range(0, len(k), _CHUNK):   # chunks of blocks: small temporaries, local writes
                     kc = k[lo:lo + _CHUNK]
