@@ -12,7 +12,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..util import as_csr, vertex_dofs
-from ..util.threads import local_threads, on_local_thread, run_all
+from ..util.threads import WORKERS, local_threads, on_local_thread, run_all
 from . import cholmod_native
 from .base import SingularLocalMatrixError
 from .cost import pattern_ordering, vertex_pattern
@@ -163,11 +163,19 @@ class BlockDiagonalSolver:
             self.update(A)
 
     def _plan_chunks(self, A: sp.csr_matrix) -> list:
-        """Consecutive subdomains grouped to about CHUNK_ENTRIES entries of A's rows each."""
+        """Consecutive subdomains grouped into equal shares of A's rows' entries, at most about
+        CHUNK_ENTRIES each, as many as a multiple of the local threads (each thread then factorizes
+        and solves the same amount; shares cut at CHUNK_ENTRIES left the last chunk a fraction of
+        the others for one thread alone)."""
         sets = self.sets
         row_nnz = np.diff(A.indptr)
         per_set = np.bincount(sets.block_of_entry(), weights=row_nnz[sets.indices], minlength=sets.count)
-        chunk = np.floor(np.cumsum(per_set) / self.CHUNK_ENTRIES).astype(np.int64)
+        total = float(per_set.sum())
+        count = int(np.ceil(total / self.CHUNK_ENTRIES)) if total > 0 else 1
+        if count > 1:
+            count = -(-count // WORKERS) * WORKERS
+        middle = np.cumsum(per_set) - 0.5 * per_set   # a subdomain goes where its middle entry falls
+        chunk = np.minimum((middle * (count / max(total, 1.0))).astype(np.int64), count - 1)
         cuts = np.r_[0, np.flatnonzero(np.diff(chunk)) + 1, sets.count]
         cuts = np.unique(cuts)
         chunks = []

@@ -120,6 +120,32 @@ def test_chunks_share_the_vertex_level_while_finding_positions(monkeypatch):
         assert np.array_equal(gather(H).toarray(), part.toarray()) and part.shape[0] == hi - lo
 
 
+@pytest.mark.parametrize("parts", [1.0, 2.5, 4.0, 7.0])
+def test_chunks_are_equal_shares_a_multiple_of_the_local_threads(monkeypatch, parts):
+    """The one-level chunks split A's rows' entries into about equal shares, as many as a multiple of
+    the local threads and at least total / CHUNK_ENTRIES (each thread factorizes and solves as much
+    as the other); consecutive, covering every subdomain once."""
+    from gtsam_schwarz.solvers.block_diagonal import BlockDiagonalSolver
+    from gtsam_schwarz.util.threads import WORKERS
+
+    prob = lawnmower(24, 24, sigma=0.01, seed=0)
+    lin = NativeLinearizer.from_arrays(**prob.arrays)
+    H = sp.csr_matrix(lin.linearize(lin.initial_state()).H)
+    H.sort_indices()
+    sets = decompose(GraphStructure.from_matrix(H, lin.offsets), 48, "metis", 1).index_sets(True)
+    row_nnz = np.diff(H.indptr)
+    total = row_nnz[sets.indices].sum()
+    monkeypatch.setattr(BlockDiagonalSolver, "CHUNK_ENTRIES", int(total / parts))
+    chunks = BlockDiagonalSolver(sets)._plan_chunks(H)
+    want = int(np.ceil(total / int(total / parts)))
+    assert len(chunks) == (1 if want == 1 else -(-want // WORKERS) * WORKERS)
+    assert [c[0] for c in chunks[1:]] == [c[1] for c in chunks[:-1]] and chunks[0][0] == 0
+    assert chunks[-1][1] == len(sets.indices)
+    shares = np.array([row_nnz[sets.indices[lo:hi]].sum() for lo, hi, _, _ in chunks])
+    largest_set = np.bincount(sets.block_of_entry(), weights=row_nnz[sets.indices]).max()
+    assert shares.max() - shares.min() <= 2 * largest_set   # equal to a subdomain or two
+
+
 def test_threads_sharing_the_vertex_level_form_it_once(monkeypatch):
     """Two threads inside their own sharing_vertex_level() asking for the same A's vertex level (the
     one-level chunks' positions on the side thread beside the extension) get one vertex pattern,
