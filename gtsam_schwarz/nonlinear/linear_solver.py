@@ -160,7 +160,8 @@ class DirectSolver(LinearSolver):
             if self._iteration_seconds is None:  # one SpMV and one more (warm) solve
                 self._factor.solve(H @ x)
                 self._iteration_seconds = time.perf_counter() - t3
-        return SolveResult(x=x, iterations=tried, setup_seconds=t3 - t1, tolerance=0.0, lagged=tried > 0)
+        return SolveResult(x=x, iterations=tried, setup_seconds=t3 - t1, tolerance=0.0, lagged=tried > 0,
+                           exact=True)
 
     def release(self) -> None:
         if self._factor is not None:

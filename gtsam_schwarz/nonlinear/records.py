@@ -30,6 +30,7 @@ class SolveResult:
     decrement_stop: bool = False  # CG stopped early: the exact step would lower the model by < decrement_tol
     decrement_bound: float = float("nan")  # that bound on the exact step's model decrease
     left_bound: float = float("nan")  # asked for (``bound_left``): the model decrease beyond x, at most
+    exact: bool = False  # x solves the (damped) system to rounding: a direct factorization of this matrix
 
 
 @dataclass

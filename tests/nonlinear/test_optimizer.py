@@ -376,3 +376,31 @@ def test_a_run_releases_its_solver_and_can_go_on(name):
     assert opt.error() <= error * (1 + 1e-12)
     record = opt.history[-1]
     assert not record.preconditioner_lagged and record.preconditioner_rebuilt
+
+
+@pytest.mark.parametrize("lam", [0.0, 1e-3, 10.0])
+def test_model_change_of_an_exact_step_needs_no_product_by_h(model, lam):
+    """For a step that solves the damped system (H + diag(d))δ = −g exactly (direct factorization),
+    the undamped model's change ½gᵀδ − ½δᵀdiag(d)δ equals gᵀδ + ½δᵀHδ; the direct solver says its
+    solves are exact, CG's are not; and a direct LM run predicts what its steps then did."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    opt = SchwarzOptimizer(model.graph, model.initial, SchwarzParams(method="lm", preconditioner="direct"))
+    system = opt._linearize()   # also fixes the gauge anchors the damping adds
+    d, diag = opt._damping(system, lam)
+    A = system.H + (sp.diags(d) if d is not None else 0)
+    dx = spla.spsolve(sp.csc_matrix(A), system.rhs)
+    _, _, exact = opt._evaluate(system, dx, (d, diag))
+    _, _, explicit = opt._evaluate(system, dx)
+    assert exact < 0 and exact == pytest.approx(explicit, rel=1e-9)
+    with opt._damped(system, lam) as H:
+        assert opt.linear_solver.solve(H, system.rhs, 1e-8, None).exact
+    cg = SchwarzOptimizer(model.graph, model.initial, SchwarzParams(method="lm", preconditioner="gdsw", subdomains=8))
+    cg_system = cg._linearize()
+    with cg._damped(cg_system, lam) as H:
+        assert not cg.linear_solver.solve(H, cg_system.rhs, 1e-8, lambda: cg.linearizer.geometry(cg._state)).exact
+    opt.optimize()
+    for h in opt.history:
+        if h["accepted"] and h["error_before"] - h["error"] > 1e-9 * h["error_before"]:
+            assert h["model_fidelity"] == pytest.approx(1.0, abs=0.2)
