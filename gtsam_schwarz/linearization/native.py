@@ -89,9 +89,9 @@ CONSTRUCTION_POPULATE_FROM = 64 << 20
 # sq128x64 (1.5M) within the spread: below, a thread start and the chordal start's GIL cost what it saves
 BACKGROUND_PLAN_FROM = 2_000_000
 # residuals of an error evaluation kept for the same state's linearization up to this many bytes
-# (Pose2: 112 per factor, ~600 000 factors; larger graphs recompute them rather than hold them
-# beside a Schwarz build's memory peak)
-KEEP_RESIDUALS_BYTES = 64 << 20
+# (Pose2: 112 per factor; the 1M-pose model problem 120 MB: linearize 268-364 -> 204-272 ms, peak
+# +20-40 MiB of 2 910); runs with a Schwarz preconditioner keep none (keep_residuals: its memory peak)
+KEEP_RESIDUALS_BYTES = 256 << 20
 _TAKE_CHUNK = 1 << 20  # entries of H gathered per np.take (int32 positions become intp a chunk at a time)
 
 
@@ -523,6 +523,7 @@ class NativeLinearizer:
         self.seconds = {}
         self._buffers = {}
         self._kept_residuals = None  # (state, {id(factor group): residual chunks}) of the last error evaluation
+        self.keep_residuals = True  # False: none kept (a caller whose memory peak sits beside the linearization)
 
     def _make_plan(self, rows: np.ndarray, cols: np.ndarray) -> None:
         """The fixed CSR pattern of H (blocks of the coupled variable pairs ``rows``, ``cols``), its
@@ -771,6 +772,7 @@ class NativeLinearizer:
         if x.shape != (self.dim,):
             raise ValueError(f"step has shape {x.shape}, expected ({self.dim},)")
         out = NativeState()
+        out._cache["stepped"] = True   # a step's state: linearized next where LM accepts it
         if self._k2 is not None:
             K = self._k2
             v = x.reshape(-1, 3) if K.dof is None else x[K.dof]
@@ -802,12 +804,14 @@ class NativeLinearizer:
 
     def _native_error(self, state: NativeState) -> float:
         """Σ ½‖R e‖² (robust Σ ρ) of the native factors (cached on the state). Up to
-        ``KEEP_RESIDUALS_BYTES`` of residual arrays are kept for the state's linearization, which
-        in LM follows an accepted step's evaluation (262k-pose model problem: 23 of 78 ms saved
-        there); the last evaluation's only, dropped by that linearization or :meth:`release_scratch`."""
+        ``KEEP_RESIDUALS_BYTES`` of residual arrays of a state made by :meth:`retract` are kept
+        (``keep_residuals``) for its linearization, which in LM follows an accepted step's evaluation
+        (262k-pose model problem: 23 of 78 ms saved there); the last evaluation's only, dropped by that
+        linearization or :meth:`release_scratch`. A start's state (evaluated once, then replaced by
+        the chordal start's) keeps none."""
         c = state._cache
         if "native_error" not in c:
-            keep = self._residual_bytes() <= KEEP_RESIDUALS_BYTES
+            keep = self.keep_residuals and c.get("stepped", False) and self._residual_bytes() <= KEEP_RESIDUALS_BYTES
             kept: dict = {}
             total = 0.0
             for K in (self._k2, self._k3):

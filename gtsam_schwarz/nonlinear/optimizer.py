@@ -171,12 +171,15 @@ class SchwarzOptimizer:
             prepare(pattern.vertex_pattern(), pattern.nnz, lambda: self.linearizer.geometry(state))
 
     def _release_scratch(self) -> None:
-        """Let the linearizer drop its scratch arrays before a Schwarz build (its memory peak). Not for
-        the direct path, nor before the automatic choice is made: at 1M 2D poses, scratch dropped in
-        the first iteration and allocated again in the second cost 1.2-1.6 s of page faults."""
+        """Let the linearizer drop its scratch arrays before a Schwarz build (its memory peak), and keep
+        no residuals from an evaluation to the next linearization (beside the peak of the next build or
+        transport). Not for the direct path, nor before the automatic choice is made: at 1M 2D poses,
+        scratch dropped in the first iteration and allocated again in the second cost 1.2-1.6 s of page faults."""
         release = getattr(self.linearizer, "release_scratch", None)
         if release is not None:
             release()
+        if hasattr(self.linearizer, "keep_residuals"):
+            self.linearizer.keep_residuals = False
 
     def _gradient_converged(self, gnorm: float) -> bool:
         p = self.nonlinear_params

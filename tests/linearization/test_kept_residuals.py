@@ -11,9 +11,10 @@ from gtsam_schwarz.linearization.native import NativeLinearizer
 @pytest.mark.parametrize("make", [lambda: lawnmower(10, 12, sigma=0.05, seed=1),
                                   lambda: survey3d(2, 5, 5, sigma=0.05, seed=1)])
 def test_linearization_after_the_error_uses_its_residuals_and_drops_them(make, monkeypatch):
-    """error(state) then linearize(state) equals a fresh linearization bit for bit (H, g, error), with
-    no residual computed twice; the kept residuals go with that linearization, with release_scratch,
-    and are not kept above KEEP_RESIDUALS_BYTES."""
+    """error(state) then linearize(state) of a step's state equals a fresh linearization bit for bit
+    (H, g, error), with no residual computed twice; the kept residuals go with that linearization, with
+    release_scratch, and are not kept above KEEP_RESIDUALS_BYTES, for a start's state, or when
+    keep_residuals is off."""
     prob = make()
     lin = NativeLinearizer.from_arrays(**prob.arrays)
     step = np.random.default_rng(2).normal(scale=0.01, size=lin.dim)
@@ -45,3 +46,26 @@ def test_linearization_after_the_error_uses_its_residuals_and_drops_them(make, m
     monkeypatch.setattr(native, "KEEP_RESIDUALS_BYTES", 0)
     lin.error(lin.retract(state, np.full(lin.dim, 3e-3)))
     assert lin._kept_residuals is None
+    monkeypatch.setattr(native, "KEEP_RESIDUALS_BYTES", 1 << 40)
+    lin.error(lin.initial_state())   # a start's state (not made by a step) keeps none
+    assert lin._kept_residuals is None
+    lin.keep_residuals = False
+    lin.error(lin.retract(state, np.full(lin.dim, 4e-3)))
+    assert lin._kept_residuals is None
+
+
+def test_a_schwarz_run_keeps_no_residuals_a_direct_run_does():
+    """The optimizer turns the keeping off once its linear solver is Schwarz (its memory peak sits beside
+    the linearization); with direct it stays on; both reach the same minimum."""
+    from gtsam_schwarz import SchwarzOptimizer, SchwarzParams
+
+    prob = lawnmower(12, 12, sigma=0.05, seed=3)
+    errors = {}
+    for name in ("direct", "rgdsw-linear"):
+        lin = NativeLinearizer.from_arrays(**prob.arrays)
+        opt = SchwarzOptimizer(prob.graph, prob.initial, SchwarzParams(method="lm", preconditioner=name, subdomain_size=30),
+                               linearizer=lin)
+        opt.optimize()
+        assert lin.keep_residuals == (name == "direct")
+        errors[name] = opt.error()
+    assert errors["direct"] == pytest.approx(errors["rgdsw-linear"], rel=1e-7)
