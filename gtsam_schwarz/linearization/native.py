@@ -90,7 +90,7 @@ CONSTRUCTION_POPULATE_FROM = 64 << 20
 BACKGROUND_PLAN_FROM = 2_000_000
 # residuals of an error evaluation kept for the same state's linearization up to this many bytes
 # (Pose2: 112 per factor; the 1M-pose model problem 120 MB: linearize 268-364 -> 204-272 ms, peak
-# +20-40 MiB of 2 910); runs with a Schwarz preconditioner keep none (keep_residuals: its memory peak)
+# +10-40 MiB of 2 910); runs with a Schwarz preconditioner keep none (keep_residuals: its memory peak)
 KEEP_RESIDUALS_BYTES = 256 << 20
 _TAKE_CHUNK = 1 << 20  # entries of H gathered per np.take (int32 positions become intp a chunk at a time)
 
