@@ -1038,14 +1038,28 @@ class NativeLinearizer:
             g[O.dofs] -= Jt @ b
         return float(O.graph.error(vals))
 
+    def pose_edges(self) -> tuple | None:
+        """(n, d, i, j) of :meth:`pose_graph`'s between factors alone (no measurement arrays made),
+        None where it gives no graph or no between factors."""
+        K = self._pure_kind()
+        if K is None or K.between is None:
+            return None
+        return K.n, 2 if K is self._k2 else 3, K.between.i, K.between.j
+
+    def _pure_kind(self):
+        """The one pose kind of a graph of Pose2s only or Pose3s only without other variables, else None."""
+        if (self._k2 is None) == (self._k3 is None) or (self._others is not None and self._others.var_keys):
+            return None
+        return self._k2 or self._k3
+
     def pose_graph(self) -> dict | None:
         """The between and prior factors of a pure Pose2 or Pose3 graph as arrays, for a global
         initialization: poses n, edges (m, 2) (pose indices), R_meas (m, d, d), t_meas (m, d),
         information (m, dof, dof) = RᵀR (GTSAM tangent order), priors (indices, R, t). None when the
         graph has other variables or both pose types."""
-        if (self._k2 is None) == (self._k3 is None) or (self._others is not None and self._others.var_keys):
+        K = self._pure_kind()
+        if K is None:
             return None
-        K = self._k2 or self._k3
         out = {"d": 2 if K is self._k2 else 3, "n": K.n}
         for name, f in (("between", K.between), ("prior", K.prior)):
             if f is None:

