@@ -82,10 +82,21 @@ def _edge_weights(information, m: int, d: int, mode: str = "information") -> tup
 
 
 def _edge_information(information, m: int, d: int) -> tuple[np.ndarray, np.ndarray]:
-    """(w_rot, Ω_tt) from None (unit), (m,) weights, (dof,dof) or (m,dof,dof) information."""
+    """(w_rot, Ω_tt) from None (unit), (m,) weights, (dof,dof) or (m,dof,dof) information, or the
+    pair (w_rot (m,), Ω_tt (m,d,d)) itself (symmetric blocks)."""
     dof = 3 if d == 2 else 6
     if information is None:
         return np.ones(m), np.broadcast_to(np.eye(d), (m, d, d)).copy()
+    if isinstance(information, tuple):
+        if len(information) != 2:
+            raise ValueError("split information must be the pair (rotation weights (m,), translation blocks (m,d,d))")
+        w_rot, W_t = (np.asarray(a, dtype=float) for a in information)
+        if w_rot.shape != (m,) or W_t.shape != (m, d, d):
+            raise ValueError(f"split information must have shapes ({m},) and ({m},{d},{d}), "
+                             f"got {w_rot.shape} and {W_t.shape}")
+        if not np.array_equal(W_t, np.swapaxes(W_t, 1, 2)):
+            raise ValueError("split translation information blocks must be symmetric")
+        return w_rot, W_t
     info = np.asarray(information, dtype=float)
     if info.ndim == 1:  # scalar weight per edge
         if info.shape != (m,):
@@ -608,6 +619,7 @@ def _direct_solve(A, B):
 
 
 # Options. information: None (unit), (m,) weights, (dof,dof) or (m,dof,dof) in GTSAM tangent order
+# (or the pair (w_rot (m,), Ω_tt (m,d,d)) they reduce to, below)
 # (Pose2 (x,y,θ), Pose3 (ω,v)); rotation weight tr(Ω_RR)/dim, translation weight Ω_tt in the frame
 # R_i R_ij (translation_weights "diagonal"/"isotropic" drop its correlations, for degenerate Ω_tt).
 # anchor: an index (anchors its component; every other component is anchored at its lowest index)

@@ -77,7 +77,7 @@ def prepare_chordal(linearizer, solver: str = "auto"):
     linearizer gives them alone: ``pose_edges``). Returns (graph, a callable giving (solver, why))."""
     edges = linearizer.pose_edges() if hasattr(linearizer, "pose_edges") else None
     job = _submit_rotation_solver(edges, solver) if edges is not None else None
-    graph = linearizer.pose_graph() if hasattr(linearizer, "pose_graph") else None
+    graph = linearizer.pose_graph(split_information=True) if hasattr(linearizer, "pose_graph") else None
     if graph is None or graph["between"] is None:
         return graph, lambda: (solver, "")
     if job is None:
