@@ -619,9 +619,9 @@ def _direct_solve(A, B):
 
 
 # Options. information: None (unit), (m,) weights, (dof,dof) or (m,dof,dof) in GTSAM tangent order
-# (or the pair (w_rot (m,), Ω_tt (m,d,d)) they reduce to, below)
 # (Pose2 (x,y,θ), Pose3 (ω,v)); rotation weight tr(Ω_RR)/dim, translation weight Ω_tt in the frame
-# R_i R_ij (translation_weights "diagonal"/"isotropic" drop its correlations, for degenerate Ω_tt).
+# R_i R_ij (translation_weights "diagonal"/"isotropic" drop its correlations, for degenerate Ω_tt);
+# or the pair (w_rot (m,), Ω_tt (m,d,d)) those reduce to, given as it is.
 # anchor: an index (anchors its component; every other component is anchored at its lowest index)
 # or one index per component; anchor_pose: None (identity), (R, p), a homogeneous matrix or, in 2D,
 # (x, y, θ); a list of those with a list of anchors. solver "cg": the project's PCG to relative
