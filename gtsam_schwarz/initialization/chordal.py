@@ -478,14 +478,26 @@ def _local_frames(layout: _SchwarzLayout, red: _Reduced, i, j, R_meas) -> np.nda
     return frames
 
 
-def _local_phases(layout: _SchwarzLayout, red: _Reduced, i, j, a: np.ndarray) -> np.ndarray:
+def _local_phases(levels, nf: int, a: np.ndarray) -> np.ndarray:
     """2D :func:`_local_frames` as unit complex numbers q_v = cos θ̃_v + i sin θ̃_v (``a``: the edges'
-    e^{iδ_ij}): a product of complex numbers per tree edge instead of 2 × 2 matrices (1M poses:
-    0.26 against 0.55 s)."""
-    q = np.ones(red.free_nodes.size, dtype=complex)
-    for nodes, parent, e, forward in _tree_levels(layout, red, i, j):
+    e^{iδ_ij}; ``levels``: :func:`_tree_levels`' list): a product of complex numbers per tree edge
+    instead of 2 × 2 matrices (1M poses: 0.26 against 0.55 s)."""
+    q = np.ones(nf, dtype=complex)
+    for nodes, parent, e, forward in levels:
         q[nodes] = q[parent] * np.where(forward, a[e], np.conj(a[e]))
     return q
+
+
+def _local_positions(levels, nf: int, c: np.ndarray) -> np.ndarray:
+    """2D positions x + iy of the free nodes composed from their aggregate's seed (at 0) along its BFS
+    tree, p_j = p_i + c_ij on every tree edge (``c``: the edges' R_i t_ij as complex numbers). Each
+    aggregate's positions then differ from the least-squares ones by one translation, up to the noise
+    of a few hops: the translations' CG starts from them (:meth:`_AggregateSchwarz.solve`), whose
+    coarse space of constants removes the translations."""
+    p = np.zeros(nf, dtype=complex)
+    for nodes, parent, e, forward in levels:
+        p[nodes] = p[parent] + np.where(forward, c[e], -c[e])
+    return p
 
 
 def _schwarz(A_ff, layout: _SchwarzLayout, d: int, basis: np.ndarray):
@@ -587,10 +599,14 @@ class _AggregateSchwarz:
         s = self.local.solve(r)
         return s - self._coarse(self.A @ s)
 
-    def solve(self, b: np.ndarray, tol: float, maxiter: int | None):
+    def solve(self, b: np.ndarray, tol: float, maxiter: int | None, guess: np.ndarray | None = None):
         """x with ‖b − Ax‖ ≤ tol‖b‖ per column of b (n, k) by deflated CG, and the CG infos
-        (residuals relative to ‖b‖)."""
-        x0 = self._coarse(b)
+        (residuals relative to ‖b‖). ``guess`` (n, k): a start corrected on the coarse space,
+        x₀ = g + Q(b − Ag), which keeps Pᴴr₀ = 0."""
+        if guess is None:
+            x0 = self._coarse(b)
+        else:
+            x0 = guess + self._coarse(b - self.A @ guess)
         r0 = b - self.A @ x0
         bnorm, rnorm = np.linalg.norm(b, axis=0), np.linalg.norm(r0, axis=0)
         ratio = np.divide(rnorm, bnorm, out=np.zeros_like(rnorm), where=bnorm > 0)
@@ -791,8 +807,9 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
 
     aggregates = []
 
-    def complex_solve(blocks, rhs, x_fixed, basis, tol=tol):
-        """CG on the one-unknown complex system, the free nodes' coarse values ``basis``."""
+    def complex_solve(blocks, rhs, x_fixed, basis, tol=tol, guess=None):
+        """CG on the one-unknown complex system, the free nodes' coarse values ``basis`` (and a start
+        ``guess`` at the free nodes)."""
         A, b = system.matrix(blocks, rhs, x_fixed)
         if not aggregates:
             label = np.full(n, layout.count)   # the anchors: an aggregate of their own, no coarse value
@@ -800,8 +817,22 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
             aggregates.append(_AggregateSchwarz(A.indptr, A.indices, label, layout.count + 1))
         values = np.zeros(n, dtype=complex)
         values[red_1.free_nodes] = basis
-        z, infos = aggregates[0].compute(A, values).solve(b, tol, maxiter)
+        start = None
+        if guess is not None:
+            start = np.zeros(n, dtype=complex)
+            start[red_1.free_nodes] = guess
+            start[anchors] = x_fixed[:, 0]
+            start = start[:, None]
+        z, infos = aggregates[0].compute(A, values).solve(b, tol, maxiter, start)
         return z[:, 0], infos
+
+    levels_cache = []
+
+    def tree_levels():
+        """The aggregates' BFS trees level by level (both 2D systems compose along them)."""
+        if not levels_cache:
+            levels_cache.append(list(_tree_levels(layout, red_1, i, j)))
+        return levels_cache[0]
 
     def tree_of(red, S, W):
         tree_eid, tree_order = spanning_tree()
@@ -863,7 +894,7 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
             X, infos = np.column_stack([z.real, z.imag]).reshape(n * d, cols), []
         elif complex_cg:   # the same, by CG; coarse values: the aggregates' local frames X̃_v e₀
             w, a_ij = w_rot.astype(complex), R_meas[:, 0, 0] - 1j * R_meas[:, 1, 0]
-            phases = _local_phases(layout, red_1, i, j, np.conj(a_ij))   # R̃_v e₀ as cos θ̃_v + i sin θ̃_v
+            phases = _local_phases(tree_levels(), red_1.free_nodes.size, np.conj(a_ij))   # R̃_v e₀ as e^{iθ̃_v}
             x_fix = X_fix.reshape(-1, 2)
             z, infos = complex_solve((w, w, -w * np.conj(a_ij), -w * a_ij), np.zeros((n, 1), dtype=complex),
                                      (x_fix[:, 0] + 1j * x_fix[:, 1])[:, None], np.conj(phases))
@@ -905,10 +936,12 @@ def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver,
         wc = w[:, None] * c
         b = np.stack([np.bincount(j, wc[:, a], minlength=n) - np.bincount(i, wc[:, a], minlength=n)
                       for a in range(d)], -1)
-        if cg_translations and complex_cg:   # x + iy on the rotations' pattern; coarse values: constants
-            wz = w.astype(complex)
+        if cg_translations and complex_cg:   # x + iy on the rotations' pattern; coarse values: constants,
+            wz = w.astype(complex)            # from the aggregates' positions composed along their trees
+            guess = _local_positions(tree_levels(), red_1.free_nodes.size, c[:, 0] + 1j * c[:, 1])
             z, infos = complex_solve((wz, wz, -wz, -wz), (b[:, 0] + 1j * b[:, 1])[:, None],
-                                     (p_fix[:, 0] + 1j * p_fix[:, 1])[:, None], np.ones(red_1.free_nodes.size), tol_t)
+                                     (p_fix[:, 0] + 1j * p_fix[:, 1])[:, None], np.ones(red_1.free_nodes.size), tol_t,
+                                     guess)
             P = np.stack([z.real, z.imag], -1)
         elif cg_translations:
             one = np.ones((m, 1, 1))

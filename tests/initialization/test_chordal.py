@@ -445,10 +445,31 @@ def test_2d_local_phases_are_the_local_frames_as_complex_numbers():
     red = chordal_module._Reduced(n, 1, np.array([0]))
     layout = chordal_module._SchwarzLayout(red, i, j, 8, 0, 0)
     frames = chordal_module._local_frames(layout, red, i, j, Rij)
-    phases = chordal_module._local_phases(layout, red, i, j, Rij[:, 0, 0] + 1j * Rij[:, 1, 0])
+    levels = list(chordal_module._tree_levels(layout, red, i, j))
+    phases = chordal_module._local_phases(levels, red.free_nodes.size, Rij[:, 0, 0] + 1j * Rij[:, 1, 0])
     np.testing.assert_allclose(phases, frames[:, 0, 0] + 1j * frames[:, 1, 0], atol=1e-14)
     np.testing.assert_allclose(np.abs(phases), 1.0, atol=1e-14)
     assert np.sum(layout.pred >= 0) > n // 2 and np.abs(phases - 1).max() > 0.1   # composed, not all seeds
+
+
+def test_2d_local_positions_are_the_poses_up_to_one_translation_per_aggregate():
+    """Noise-free measurements with the true rotations: the positions composed along each aggregate's
+    BFS tree from its seed (at 0) are the true ones less the seed's, in every aggregate."""
+    rng = np.random.default_rng(12)
+    n = 400
+    R, p = trajectory(n, 2, rng)
+    e, Rij, tij = pose_graph(R, p, 120, rng, noise=0.0)
+    i, j = e[:, 0], e[:, 1]
+    red = chordal_module._Reduced(n, 1, np.array([0]))
+    layout = chordal_module._SchwarzLayout(red, i, j, 8, 0, 0)
+    levels = list(chordal_module._tree_levels(layout, red, i, j))
+    c = np.einsum("kab,kb->ka", R[i], tij)   # R_i t_ij = p_j − p_i
+    local = chordal_module._local_positions(levels, red.free_nodes.size, c[:, 0] + 1j * c[:, 1])
+    true = (p[:, 0] + 1j * p[:, 1])[red.free_nodes]
+    offset = true - local   # one translation per aggregate: its seed's position
+    seeds = layout.pred < 0
+    assert np.sum(~seeds) > n // 2 and np.abs(local).max() > 0.1   # composed, not all seeds
+    np.testing.assert_allclose(offset, offset[seeds][np.searchsorted(layout.label[seeds], layout.label)], atol=1e-12)
 
 
 def test_2d_cg_without_overlap_runs_in_complex_numbers():
