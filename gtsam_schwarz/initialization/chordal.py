@@ -643,7 +643,8 @@ def _direct_solve(A, B):
 # (x, y, θ); a list of those with a list of anchors. solver "cg": the project's PCG to relative
 # residual tol (the right-hand sides side by side), preconditioned by "schwarz" (two-level Schwarz
 # on aggregates of about aggregate_size poses grown by overlap layers, balancing form; coarse blocks:
-# the rotations composed from each aggregate's seed (rotation system), constants (translations)),
+# the rotations composed from each aggregate's seed (rotation system), constants (translations; in 2D
+# by CG started from the positions composed along the aggregates' trees)),
 # "tree" (exact spanning-tree solve), "jacobi" or "none"; solver "direct": sparse Cholesky (CHOLMOD
 # if installed, else SuperLU). translation_solver: the translations' ("cg" or "direct"; None: as
 # solver); isotropic translation information makes them one scalar Laplacian. translation_tol: CG's
