@@ -93,6 +93,9 @@ class TwoLevelSchwarz(SumOperator):
         self._geometry = None  # the poses Φ's rigid modes are written at (a build's or the last transport's)
         self._ahead = None  # (old poses, new poses, vertices, Future) of transport_ahead, until settled
         self._ordering = None  # the subdomain blocks' order being found by setup (a Future), until ordered()
+        # the same order found before setup, from the decomposition and A's vertex pattern (a Future of
+        # ``vertex_block_order``; set by a caller that started it, taken by setup)
+        self.block_order = None
 
     @classmethod
     def create(cls, n, decomposition=None, translation_mask=None, kind="gdsw", rotation=True,
@@ -113,14 +116,16 @@ class TwoLevelSchwarz(SumOperator):
         """Interface components and the harmonic extension (symbolic, once per graph). The subdomain
         blocks' fill-reducing order, which the extension's interiors then follow, is found on the side
         thread (CHOLMOD's ordering holds no GIL; 1M 2D poses 1.0 s) while the interface is found and
-        the memory estimate's coarse columns are counted here; :meth:`ordered` takes it."""
+        the memory estimate's coarse columns are counted here (or only put in place there, where
+        ``block_order`` brings it found ahead of the first linearization); :meth:`ordered` takes it."""
         bound_heap_fragmentation()
         local = self.one_level.solver
-        self._ordering = None if on_local_thread() else side_thread().submit(local.order_vertices, A)
+        ahead, self.block_order = self.block_order, None
+        self._ordering = None if on_local_thread() else side_thread().submit(local.order_vertices, A, ahead)
         self.interface = find_interface(self.decomposition, self.interface_grouping)
         self.extension = HarmonicExtension(self.decomposition, self.interface)
         if self._ordering is None:
-            self._order_interiors(local.order_vertices(A))
+            self._order_interiors(local.order_vertices(A, ahead))
         self.memory = None
         return self
 

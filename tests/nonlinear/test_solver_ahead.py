@@ -1,6 +1,7 @@
 """The linear solver's decomposition started ahead of the first linearization (on the side thread,
 from the linearizer's fixed pattern) is the one the first solve would make, and the run is the same."""
 
+import importlib
 import threading
 
 import numpy as np
@@ -13,9 +14,11 @@ from gtsam_schwarz.nonlinear import linear_solver as ls
 from gtsam_schwarz.util import vertex_pattern
 
 DECOMPOSE = ls.decompose
+block_diagonal_module = importlib.import_module("gtsam_schwarz.solvers.block_diagonal")   # (the package exports a function of that name)
+ORDER = block_diagonal_module.vertex_block_order
 
 
-def _run(problem, preconditioner, ahead: bool, monkeypatch):
+def _run(problem, preconditioner, ahead: bool, monkeypatch, orders: list | None = None):
     monkeypatch.setattr(ls.PreconditionedCG, "AHEAD_FROM", 0 if ahead else 10**12)
     threads = []
 
@@ -24,6 +27,13 @@ def _run(problem, preconditioner, ahead: bool, monkeypatch):
         return DECOMPOSE(*args, **kwargs)
 
     monkeypatch.setattr(ls, "decompose", recording)
+    if orders is not None:   # where (on which thread, ahead or in the operator's setup) the blocks' order is found
+        def ordering(*args, **kwargs):
+            orders.append(threading.current_thread().name)
+            return ORDER(*args, **kwargs)
+
+        monkeypatch.setattr(ls, "vertex_block_order", ordering)
+        monkeypatch.setattr(block_diagonal_module, "vertex_block_order", ordering)
     lin = NativeLinearizer.from_arrays(**problem.arrays)
     opt = SchwarzOptimizer(problem.graph, problem.initial, SchwarzParams(method="lm", preconditioner=preconditioner),
                            linearizer=lin)
@@ -47,9 +57,14 @@ def test_decomposition_ahead_is_the_first_solves_and_the_run_is_the_same(precond
     p = lawnmower(30, 30)
     if preconditioner == "auto":   # direct predicted slow (as on large surveys): auto takes Schwarz
         monkeypatch.setattr(ls.CostModel, "direct", lambda self, cost: 1e9)
-    ahead, on = _run(p, preconditioner, True, monkeypatch)
-    alone, off = _run(p, preconditioner, False, monkeypatch)
+    orders_on, orders_off = [], []
+    ahead, on = _run(p, preconditioner, True, monkeypatch, orders_on)
+    alone, off = _run(p, preconditioner, False, monkeypatch, orders_off)
     assert len(on) == len(off) == 1   # decomposed once either way
+    # the subdomain blocks' order: found once either way, ahead right after the decomposition on its thread
+    assert len(orders_on) == len(orders_off) == 1 and orders_on[0] == on[0]
+    s1, s2 = (getattr(o.linear_solver, "chosen", o.linear_solver).operator.one_level.sets for o in (ahead, alone))
+    assert np.array_equal(s1.vertices, s2.vertices)   # the same order of every subdomain's vertices
     assert not on[0].startswith("MainThread") and off[0] == "MainThread"   # ahead: on the side thread
     assert ahead.linear_solver.choice == alone.linear_solver.choice != "direct"
     d1, d2 = ahead.decomposition, alone.decomposition
