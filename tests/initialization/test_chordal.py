@@ -434,18 +434,23 @@ def test_3d_direct_path_with_isotropic_translations_matches_real_cg():
         np.testing.assert_allclose(direct.positions[3], p[3], atol=1e-12)
 
 
-def test_2d_local_phases_are_the_local_frames_as_complex_numbers():
-    """The 2D aggregates' local frames composed as unit complex numbers equal the 2 × 2 rotations
-    composed along the same BFS trees (seeds at the identity, every other node off it)."""
-    rng = np.random.default_rng(11)
-    n = 400
+def _aggregate_trees(seed: int, noise: float, n: int = 400):
+    """A 2D pose graph anchored at pose 0, its aggregates of about 8 poses and their BFS trees' levels."""
+    rng = np.random.default_rng(seed)
     R, p = trajectory(n, 2, rng)
-    e, Rij, _ = pose_graph(R, p, 120, rng, noise=0.1)
+    e, Rij, tij = pose_graph(R, p, 120, rng, noise=noise)
     i, j = e[:, 0], e[:, 1]
     red = chordal_module._Reduced(n, 1, np.array([0]))
     layout = chordal_module._SchwarzLayout(red, i, j, 8, 0, 0)
+    return R, p, i, j, Rij, tij, red, layout, list(chordal_module._tree_levels(layout, red, i, j))
+
+
+def test_2d_local_phases_are_the_local_frames_as_complex_numbers():
+    """The 2D aggregates' local frames composed as unit complex numbers equal the 2 × 2 rotations
+    composed along the same BFS trees (seeds at the identity, every other node off it)."""
+    n = 400
+    R, p, i, j, Rij, _, red, layout, levels = _aggregate_trees(11, 0.1, n)
     frames = chordal_module._local_frames(layout, red, i, j, Rij)
-    levels = list(chordal_module._tree_levels(layout, red, i, j))
     phases = chordal_module._local_phases(levels, red.free_nodes.size, Rij[:, 0, 0] + 1j * Rij[:, 1, 0])
     np.testing.assert_allclose(phases, frames[:, 0, 0] + 1j * frames[:, 1, 0], atol=1e-14)
     np.testing.assert_allclose(np.abs(phases), 1.0, atol=1e-14)
@@ -455,14 +460,8 @@ def test_2d_local_phases_are_the_local_frames_as_complex_numbers():
 def test_2d_local_positions_are_the_poses_up_to_one_translation_per_aggregate():
     """Noise-free measurements with the true rotations: the positions composed along each aggregate's
     BFS tree from its seed (at 0) are the true ones less the seed's, in every aggregate."""
-    rng = np.random.default_rng(12)
     n = 400
-    R, p = trajectory(n, 2, rng)
-    e, Rij, tij = pose_graph(R, p, 120, rng, noise=0.0)
-    i, j = e[:, 0], e[:, 1]
-    red = chordal_module._Reduced(n, 1, np.array([0]))
-    layout = chordal_module._SchwarzLayout(red, i, j, 8, 0, 0)
-    levels = list(chordal_module._tree_levels(layout, red, i, j))
+    R, p, i, j, _, tij, red, layout, levels = _aggregate_trees(12, 0.0, n)
     c = np.einsum("kab,kb->ka", R[i], tij)   # R_i t_ij = p_j − p_i
     local = chordal_module._local_positions(levels, red.free_nodes.size, c[:, 0] + 1j * c[:, 1])
     true = (p[:, 0] + 1j * p[:, 1])[red.free_nodes]
