@@ -189,7 +189,7 @@ def test_extension_in_the_subdomains_fill_reducing_order_is_the_same_basis(monke
     dec = decompose(GraphStructure.from_matrix(H, lin.offsets), 6, "metis", overlap)
     mask = np.tile([True, True, False], len(lin.offsets) - 1)
     ordered = make_preconditioner(name, H, dec, mask, geometry=lin.geometry(state))
-    monkeypatch.setattr(BlockDiagonalSolver, "order_vertices", lambda self, A: False)
+    monkeypatch.setattr(BlockDiagonalSolver, "order_vertices", lambda self, A, ahead=None: False)
     plain = make_preconditioner(name, H, dec, mask, geometry=lin.geometry(state))
     assert not plain.extension.ordered
     assert ordered.extension.ordered == (SPARSE_BACKEND == "cholmod")
