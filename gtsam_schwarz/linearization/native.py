@@ -692,6 +692,12 @@ class NativeLinearizer:
             self._base = (values, st, read)
         return st
 
+    @property
+    def relative_only(self) -> bool:
+        """Whether every factor is a native between factor (no prior, nothing GTSAM linearizes): the
+        error is then unchanged by a rigid motion of any connected component (gauge freedom)."""
+        return self._others is None and all(K.prior is None for K in (self._k2, self._k3) if K is not None)
+
     def _kind(self):
         """The one pose kind of a graph of Pose2s only or Pose3s only."""
         return self._k2 if self._k2 is not None else self._k3

