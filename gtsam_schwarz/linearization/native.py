@@ -693,10 +693,14 @@ class NativeLinearizer:
         return st
 
     @property
-    def relative_only(self) -> bool:
-        """Whether every factor is a native between factor (no prior, nothing GTSAM linearizes): the
-        error is then unchanged by a rigid motion of any connected component (gauge freedom)."""
-        return self._others is None and all(K.prior is None for K in (self._k2, self._k3) if K is not None)
+    def prior_vertices(self) -> np.ndarray | None:
+        """The variables of the prior factors where every factor is native (between factors are unchanged
+        by a rigid motion of their component, so only these rows of Hz can be nonzero for one: the gauge
+        test reads them alone); None where GTSAM linearizes factors."""
+        if self._others is not None:
+            return None
+        found = [K.gvar[K.prior.j] for K in (self._k2, self._k3) if K is not None and K.prior is not None]
+        return np.concatenate(found).astype(np.int64) if found else np.zeros(0, dtype=np.int64)
 
     def _kind(self):
         """The one pose kind of a graph of Pose2s only or Pose3s only."""

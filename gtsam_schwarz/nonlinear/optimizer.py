@@ -156,7 +156,7 @@ class SchwarzOptimizer:
             self._release_scratch()
         if self.anchors is None:
             self.anchors = free_components(system.H, self.linearizer.offsets, self.linearizer.geometry(self._state),
-                                           system.diagonal, getattr(self.linearizer, "relative_only", False))
+                                           system.diagonal, getattr(self.linearizer, "prior_vertices", None))
             self._anchor_dofs = vertex_dofs(self.anchors, self.linearizer.offsets) if len(self.anchors) else None
         return system
 

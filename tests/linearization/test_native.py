@@ -571,7 +571,7 @@ def test_mixed_graph_with_landmarks():
     lin, st, _ = _compare_system(graph, values)
     assert lin.gtsam_factor_count == 3 * 3 + 1
     assert lin.geometry(st) is None
-    assert not lin.relative_only   # factors GTSAM linearizes: the gauge is not known from the factor types
+    assert lin.prior_vertices is None   # factors GTSAM linearizes: every row of Hz is read
     x = rng.normal(size=lin.dim) * 0.3
     vv = gtsam.VectorValues()
     for v, k in enumerate(lin.keys.tolist()):
@@ -817,7 +817,9 @@ def test_gauge_check_on_native_hessians(kind):
     H = lin.linearize(st).H
     free = free_components(H, lin.offsets, lin.geometry(st))
     assert lin.keys[free].tolist() == [X(100)]   # the copy has no prior; the original has one
-    assert not lin.relative_only   # priors: the numeric test decides
+    # the prior's rows of Hz alone: the same anchors
+    assert lin.keys[lin.prior_vertices].tolist() == [X(0)]
+    assert np.array_equal(free_components(H, lin.offsets, lin.geometry(st), sources=lin.prior_vertices), free)
     bare = gtsam.NonlinearFactorGraph()
     for k in range(graph.size()):
         if len(graph.at(k).keys()) == 2:
@@ -828,8 +830,8 @@ def test_gauge_check_on_native_hessians(kind):
     free = free_components(H, lin.offsets, lin.geometry(st))
     assert lin.keys[free].tolist() == [X(0), X(100)]
     # between factors only: every component free without the test on H's numbers, the same anchors
-    assert lin.relative_only
-    assert np.array_equal(free_components(H, lin.offsets, lin.geometry(st), relative_only=True), free)
+    assert len(lin.prior_vertices) == 0
+    assert np.array_equal(free_components(H, lin.offsets, lin.geometry(st), sources=lin.prior_vertices), free)
 
 
 def test_diagonal_sums_in_groups_equal_one_group(monkeypatch):
