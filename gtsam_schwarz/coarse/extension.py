@@ -20,7 +20,7 @@ from ..solvers.factory import factorize_local
 from ..solvers.gather import pattern_of, sharing_vertex_level
 from ..util import vertex_dofs
 from ..util.sparse import as_csr, row_block, row_entries
-from ..util.threads import local_threads, on_local_thread, run_all
+from ..util.threads import WORKERS, local_threads, on_local_thread, wait_all
 
 
 class CoarseBasis:
@@ -300,6 +300,11 @@ def _symmetric_part(A0: sp.spmatrix) -> sp.csr_matrix:
     return A0
 
 
+# interior rows are factorized in pieces of at most about 1/GROUP_PIECES of them (whole subdomains):
+# jobs the local threads share evenly
+GROUP_PIECES = 2 * WORKERS
+
+
 class HarmonicExtension:
     """Φ = [Φ_Γ; −A_II⁻¹ A_IΓ Φ_Γ] and A_0 = Φᵀ A Φ for one decomposition and interface.
 
@@ -350,18 +355,47 @@ class HarmonicExtension:
             self.interior, self.ordered = vertex_dofs(own, self.offsets), True
             self.sub = owner[own].repeat(np.diff(self.offsets)[own])
 
-    def _plan(self, gamma_rows, gamma_cols, col_subdomains) -> dict:
-        """Symbolic part of one extension: the groups, the pattern of Φ_Γ (interface rows) and of
-        Φ's local rows, and the compressed column of each (subdomain, coarse column) pair."""
-        nc = col_subdomains.shape[0]
+    def _make_groups(self, col_subdomains) -> sp.csr_matrix:
+        """The groups of :meth:`_plan` (``self.groups``: interior rows and subdomains, no numbers);
+        returns the subdomain × column pattern P the rest of the plan reads. Made first so that the
+        groups' factorizations can start while the plan goes on."""
         P = sp.csr_matrix(col_subdomains.T)  # subdomain × column
         P.sort_indices()
+        group_of_sub = column_groups(np.diff(P.indptr), np.bincount(self.sub, minlength=P.shape[0]), self.max_groups)
+        in_group = group_of_sub[self.sub]
+        pieces = []
+        for g in np.unique(in_group):  # at most max_groups
+            pieces += self._pieces(np.flatnonzero(in_group == g))
+        pieces.sort(key=len, reverse=True)   # the largest first: the local threads then end together
+        self.groups = [_Group(self.interior[rows], self.sub[rows], self.gamma, self.n, self.offsets, self.ordered)
+                       for rows in pieces]
+        return P
+
+    def _pieces(self, rows: np.ndarray) -> list[np.ndarray]:
+        """A group's interior rows in pieces of whole subdomains, each at most about 1/GROUP_PIECES of
+        all interior rows (their factorizations are the jobs of the local threads: a group of half the
+        interior would keep one thread busy while the other waits; each row keeps its place, so a
+        subdomain's rows stay in its fill-reducing order)."""
+        k = int(np.ceil(GROUP_PIECES * len(rows) / max(len(self.interior), 1)))
+        if k <= 1:
+            return [rows]
+        sub = self.sub[rows]
+        size = np.bincount(sub)
+        before = np.cumsum(size) - size   # rows of the group's subdomains numbered lower
+        piece = np.minimum((before * k) // len(rows), k - 1)[sub]
+        return [rows[piece == j] for j in range(k) if np.any(piece == j)]
+
+    def _plan(self, gamma_rows, gamma_cols, col_subdomains, P: sp.csr_matrix | None = None) -> dict:
+        """Symbolic part of one extension: the groups (made here unless :meth:`_make_groups` made them
+        and gave ``P``), the pattern of Φ_Γ (interface rows) and of Φ's local rows, and the compressed
+        column of each (subdomain, coarse column) pair."""
+        nc = col_subdomains.shape[0]
+        P = P if P is not None else self._make_groups(col_subdomains)
         counts = np.diff(P.indptr)
         pair_sub = np.repeat(np.arange(P.shape[0]), counts)
         idx = np.int32 if max(nc, self.n) < 2**31 - 1 else np.int64
         table = np.zeros((P.shape[0], max(int(counts.max()), 1)), dtype=idx)
         table[pair_sub, np.arange(len(P.indices)) - P.indptr[pair_sub]] = P.indices
-        group_of_sub = column_groups(counts, np.bincount(self.sub, minlength=P.shape[0]), self.max_groups)
         # Φ_Γ's entries in (interface row, column) order: rows by a map of Γ, one stable sort of the
         # combined key (the entries come nearly sorted; 32 768 3D poses: 0.12 s against 0.35 s for a
         # binary search of Γ and a lexsort)
@@ -373,17 +407,14 @@ class HarmonicExtension:
         if len(g_order) < 2**31 - 1:
             g_order = g_order.astype(np.int32)
         ptr_G = np.searchsorted(gpos[g_order], np.arange(len(self.gamma) + 1))
-        self.groups, plans, indices, k_rows = [], [], [], []
-        for g in np.unique(group_of_sub[self.sub]):  # at most max_groups
-            rows_g = np.flatnonzero(group_of_sub[self.sub] == g)
-            group = _Group(self.interior[rows_g], self.sub[rows_g], self.gamma, self.n, self.offsets, self.ordered)
+        plans, indices, k_rows = [], [], []
+        for group in self.groups:  # at most max_groups
             k_row = counts[group.sub]
-            K, nI = int(k_row.max()), len(rows_g)
+            K, nI = int(k_row.max()), len(group.interior)
             prefix = np.arange(K)[None, :] < k_row[:, None]
             indices.append(table[group.sub, :K][prefix])  # Φ_I: row r holds its subdomain's K_i columns
             k_rows.append(k_row)
             plans.append({"K": K, "nI": nI, "k_row": k_row, "target": None})
-            self.groups.append(group)
         nnz_I = sum(len(i) for i in indices)
         indptr = np.r_[0, np.cumsum(np.concatenate(k_rows)), nnz_I + ptr_G[1:]].astype(np.int64)
         offset = 0
@@ -421,6 +452,16 @@ class HarmonicExtension:
             raise AssertionError("interface coupling outside its subdomain: decomposition is inconsistent")
         dtype = np.int32 if gplan["K"] * nI < 2**31 - 1 else np.int64
         return (plan["local_k"][at] * np.int64(nI) + rows).astype(dtype)
+
+    def _start_factorizations(self, A) -> list | None:
+        """The groups' A_II gathered and factorized side by side on the local threads (CHOLMOD holds
+        no GIL; lawnmower 1000x1000: 1.9 -> 1.1 s), each group's positions on its thread too (one
+        group's beside another's factorization): all interior factors at once, as the memory estimate
+        counts. Their futures; None (nothing started) for one group or on a local thread."""
+        if len(self.groups) <= 1 or on_local_thread():
+            return None
+        pool = local_threads()
+        return [pool.submit(group.refactor, A) for group in self.groups]
 
     def _extend(self, group: _Group, A_IG: sp.csr_matrix, Phi_G: sp.csr_matrix, plan: dict, gplan: dict,
                 data: np.ndarray) -> None:
@@ -484,25 +525,31 @@ class HarmonicExtension:
         # the coarse space's cached (read-only) pattern again: no digest; other arrays are not kept
         same = cached is not None and cached[3] is not None and all(a is b for a, b in zip(arrays, cached[3]))
         signature = cached[0] if same else _digest(*arrays)
-        if cached is None or not cached[2].matches(A) or cached[0] != signature:
-            self._cached = None
-            frozen = not any(a.flags.writeable for a in arrays)
-            self._cached = cached = (signature, self._plan(gamma_rows, gamma_cols, col_subdomains), pattern_of(A),
-                                     arrays if frozen else None)
-        plan = cached[1]
-        reuse = recycle is not None and recycle.plan is plan and recycle.local.data.shape == plan["indices"].shape
-        data = recycle.local.data if reuse else np.empty(len(plan["indices"]))
-        del recycle
-        Phi_G = sp.csr_matrix((gamma_vals[plan["g_order"]], plan["indices"][plan["nnz_I"]:], plan["ptr_G"]),
-                              shape=(len(self.gamma), nc))
         with sharing_vertex_level():   # the groups' gathers read A's vertex level once
+            started = None
+            if cached is None or not cached[2].matches(A) or cached[0] != signature:
+                self._cached = None
+                frozen = not any(a.flags.writeable for a in arrays)
+                P = self._make_groups(col_subdomains)
+                # a new plan: the groups' factorizations start now and run while the rest of the
+                # plan is made (1M 2D poses: 0.36 s on this thread)
+                started = self._start_factorizations(A)
+                try:
+                    plan = self._plan(gamma_rows, gamma_cols, col_subdomains, P)
+                except BaseException:
+                    for job in started or ():
+                        job.exception()   # ended (the plan's error is the one raised)
+                    raise
+                self._cached = cached = (signature, plan, pattern_of(A), arrays if frozen else None)
+            plan = cached[1]
+            reuse = recycle is not None and recycle.plan is plan and recycle.local.data.shape == plan["indices"].shape
+            data = recycle.local.data if reuse else np.empty(len(plan["indices"]))
+            del recycle
+            Phi_G = sp.csr_matrix((gamma_vals[plan["g_order"]], plan["indices"][plan["nnz_I"]:], plan["ptr_G"]),
+                                  shape=(len(self.gamma), nc))
             side_by_side = len(self.groups) > 1 and not on_local_thread()
             if side_by_side:
-                # the groups' A_II gathered and factorized side by side first (CHOLMOD holds no GIL;
-                # lawnmower 1000x1000: 1.9 -> 1.1 s), each group's positions on its thread too (one
-                # group's beside another's factorization): all interior factors at once, as the
-                # memory estimate counts
-                run_all(local_threads(), [lambda g=group: g.refactor(A) for group in self.groups])
+                wait_all(started if started is not None else self._start_factorizations(A))
             for group, gplan in zip(self.groups, plan["groups"]):
                 if not side_by_side:
                     group.refactor(A)

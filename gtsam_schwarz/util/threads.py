@@ -47,8 +47,13 @@ def _pool(name: str, workers: int) -> ThreadPoolExecutor:
 def run_all(pool: ThreadPoolExecutor, jobs: list) -> list:
     """Results of the callables ``jobs`` run on ``pool``, in order; every job has finished when this
     returns or raises (the first failure is raised after the others have ended)."""
+    return wait_all([pool.submit(job) for job in jobs])
+
+
+def wait_all(futures: list) -> list:
+    """Results of ``futures`` in order, once all have ended (the first failure raised after that)."""
     results, error = [], None
-    for f in [pool.submit(job) for job in jobs]:
+    for f in futures:
         try:
             results.append(f.result())
         except BaseException as exc:  # noqa: BLE001 — re-raised once all have ended

@@ -385,6 +385,35 @@ def test_extension_with_cancelling_products_and_in_column_blocks_equals_a_dense_
     assert np.allclose(A0_b.toarray(), ref.T @ H2.toarray() @ ref, rtol=1e-8, atol=1e-9 * np.abs(A0_b).max())
 
 
+def test_extension_in_pieces_of_whole_subdomains_equals_a_dense_solve(two_points, monkeypatch):
+    """Interior rows factorized in pieces (the local threads' jobs): every piece holds whole
+    subdomains, keeps its rows in their order, and Φ and A_0 equal a dense solve's."""
+    import gtsam_schwarz.coarse.extension as E
+    from gtsam_schwarz.coarse import coarse_columns
+
+    km, H1, _ = two_points
+    dec = decompose(GraphStructure.from_matrix(H1, km.offsets), 6, "segments", 1)
+    iface = find_interface(dec)
+    rows, cols, vals, _, col_subdomains = coarse_columns(dec, iface, "gdsw", None, True, km.translation_mask())
+    nc = col_subdomains.shape[0]
+    monkeypatch.setattr(E, "GROUP_PIECES", 12)
+    ext = HarmonicExtension(dec, iface)
+    Phi, A0 = ext(H1, rows, cols, vals, col_subdomains)
+    ref = _dense_extension(H1, ext, rows, cols, vals, nc)
+    assert np.abs(Phi.tocsr().toarray() - ref).max() <= 1e-9 * np.abs(ref).max()
+    assert np.allclose(A0.toarray(), ref.T @ H1.toarray() @ ref, rtol=1e-8, atol=1e-9 * np.abs(A0).max())
+    assert len(ext.groups) > ext.max_groups   # the column groups cut in pieces
+    assert sum(len(g.interior) for g in ext.groups) == len(ext.interior)
+    owner = {}
+    place = np.empty(H1.shape[0], dtype=np.int64)
+    place[ext.interior] = np.arange(len(ext.interior))
+    for k, g in enumerate(ext.groups):
+        for sub in np.unique(g.sub):
+            assert owner.setdefault(int(sub), k) == k   # a subdomain's interior in one piece
+        assert np.all(np.diff(place[g.interior]) > 0)   # its rows in the interior's order
+    assert len(owner) == len(np.unique(ext.sub))
+
+
 def _direct(lagged):
     from gtsam_schwarz.nonlinear.linear_solver import DirectSolver
     solver = DirectSolver(lagged=lagged)
