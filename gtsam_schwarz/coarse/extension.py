@@ -408,7 +408,7 @@ class HarmonicExtension:
             g_order = g_order.astype(np.int32)
         ptr_G = np.searchsorted(gpos[g_order], np.arange(len(self.gamma) + 1))
         plans, indices, k_rows = [], [], []
-        for group in self.groups:  # at most max_groups
+        for group in self.groups:  # the column groups' pieces (a few)
             k_row = counts[group.sub]
             K, nI = int(k_row.max()), len(group.interior)
             prefix = np.arange(K)[None, :] < k_row[:, None]

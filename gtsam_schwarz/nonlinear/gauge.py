@@ -50,7 +50,6 @@ def free_components(H: sp.csr_matrix, offsets: np.ndarray, geometry: VertexGeome
         Z = np.zeros((H.shape[0], d))
         Z[(offsets[:-1, None] + np.arange(dim)).ravel()] = modes.reshape(nv * dim, d)
     diag = H.data[diagonal] if diagonal is not None else H.diagonal()
-    owner = np.repeat(comp, dims)
     rows = slice(None) if sources is None else vertex_dofs(sorted_unique(sources), offsets)
     HZ = (H[rows] if sources is not None else H) @ Z
     HZ *= Z[rows]
@@ -59,6 +58,7 @@ def free_components(H: sp.csr_matrix, offsets: np.ndarray, geometry: VertexGeome
     if n_comp == 1:   # zᵀHz and zᵀdiag(H)z of the d modes as column sums (no per-vertex sums)
         zHz, zDz = HZ.sum(axis=0)[None], ZZ.sum(axis=0)[None]
     else:
+        owner = np.repeat(comp, dims)
         zHz = np.stack([np.bincount(owner[rows], HZ[:, k], minlength=n_comp) for k in range(d)], -1)
         zDz = np.stack([np.bincount(owner, ZZ[:, k], minlength=n_comp) for k in range(d)], -1)
     ratio = (zHz / np.where(zDz > 0, zDz, 1.0)).max(axis=1)
