@@ -308,17 +308,17 @@ class BlockDiagonalSolver:
         self._dense = None
 
     def matvec(self, x: np.ndarray) -> np.ndarray:
-        xl = x[self.sets.indices]
+        indices = self.sets.indices
         if self._dense is not None:
             s = self._dense.shape[1]
-            yl = np.einsum("bij,bj->bi", self._dense, xl.reshape(-1, s)).ravel()
+            yl = np.einsum("bij,bj->bi", self._dense, x[indices].reshape(-1, s)).ravel()
         elif len(self._chunks) == 1:
-            yl = self._chunks[0][3].solve(xl)
+            yl = self._chunks[0][3].solve(x[indices])
         else:
-            yl = np.empty_like(xl)
+            yl = np.empty(len(indices), dtype=x.dtype)
 
-            def solve(lo, hi, factor):
-                yl[lo:hi] = factor.solve(xl[lo:hi])
+            def solve(lo, hi, factor):   # each chunk gathers its own rows of x (beside the other's solve)
+                yl[lo:hi] = factor.solve(x[indices[lo:hi]])
 
             jobs = [lambda c=c: solve(c[0], c[1], c[3]) for c in self._chunks]
             if self.threaded and all(isinstance(c[3], cholmod_native.SimplicialCholesky) for c in self._chunks):
@@ -326,4 +326,4 @@ class BlockDiagonalSolver:
             else:
                 for job in jobs:
                     job()
-        return np.bincount(self.sets.indices, weights=yl, minlength=self.n)
+        return np.bincount(indices, weights=yl, minlength=self.n)
