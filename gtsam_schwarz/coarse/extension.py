@@ -385,12 +385,11 @@ class HarmonicExtension:
         piece = np.minimum((before * k) // len(rows), k - 1)[sub]
         return [rows[piece == j] for j in range(k) if np.any(piece == j)]
 
-    def _plan(self, gamma_rows, gamma_cols, col_subdomains, P: sp.csr_matrix | None = None) -> dict:
-        """Symbolic part of one extension: the groups (made here unless :meth:`_make_groups` made them
-        and gave ``P``), the pattern of Φ_Γ (interface rows) and of Φ's local rows, and the compressed
-        column of each (subdomain, coarse column) pair."""
+    def _plan(self, gamma_rows, gamma_cols, col_subdomains, P: sp.csr_matrix) -> dict:
+        """Symbolic part of one extension after :meth:`_make_groups` (which gave ``P``): the pattern of
+        Φ_Γ (interface rows) and of Φ's local rows, and the compressed column of each (subdomain, coarse
+        column) pair."""
         nc = col_subdomains.shape[0]
-        P = P if P is not None else self._make_groups(col_subdomains)
         counts = np.diff(P.indptr)
         pair_sub = np.repeat(np.arange(P.shape[0]), counts)
         idx = np.int32 if max(nc, self.n) < 2**31 - 1 else np.int64
