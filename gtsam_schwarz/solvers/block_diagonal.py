@@ -158,6 +158,10 @@ class BlockDiagonalSolver:
 
     DENSE_MAX = 12
     threaded = True  # simplicial chunks solved on the local threads (util.threads)
+    # False: each chunk's gather positions (B's pattern and where its entries sit in A, 8 bytes per
+    # entry: 383 MiB at 1M 2D poses) are dropped once its B is gathered, the factor's analysis kept;
+    # the next update finds them again. For a caller short of memory whose factors are seldom renewed.
+    keep_positions = True
     CHUNK_ENTRIES = 8_000_000  # entries of A in the rows of one chunk (an upper bound of its block's)
 
     def __init__(self, sets, A: sp.spmatrix | None = None):
@@ -250,9 +254,12 @@ class BlockDiagonalSolver:
         fresh = []
         with sharing_vertex_level():   # the chunks share A's vertex level while finding positions
             for chunk in self._chunks:   # the positions (symbolic) one chunk after the other
-                pattern = chunk[2].pattern
-                A = chunk[2].prepare(A)
-                fresh.append(chunk[3] is None or chunk[2].pattern is not pattern)
+                gather = chunk[2]
+                pattern = gather.pattern or gather.forgotten
+                A = gather.prepare(A)
+                gather.forgotten = None
+                same = pattern is not None and (gather.pattern is pattern or pattern.matches(A))
+                fresh.append(chunk[3] is None or not same)
                 if fresh[-1]:
                     chunk[3] = None
         return A, fresh
@@ -276,6 +283,8 @@ class BlockDiagonalSolver:
 
         def job(chunk, new):   # gathered, then factorized: one chunk's matrix per thread at a time
             B = chunk[2](A)
+            if not self.keep_positions:
+                chunk[2].forget()
             self._factorize(chunk, B, new)
 
         jobs = [lambda c=c, f=f: job(c, f) for c, f in zip(self._chunks, fresh)]

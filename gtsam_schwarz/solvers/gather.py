@@ -59,9 +59,12 @@ class Gather:
     def __init__(self, extract):
         self.extract = extract
         self.pattern = None
+        self.forgotten = None  # the pattern of A whose positions :meth:`forget` dropped
 
     def forget(self) -> None:
-        """Drop the positions and B's pattern (memory); the next call finds them anew."""
+        """Drop the positions and B's pattern (memory); the next call finds them anew. ``forgotten``
+        keeps which A they were for (a caller's factorization of B may still fit the next A)."""
+        self.forgotten = self.pattern or self.forgotten
         self.pattern = self.src = self.indices = self.indptr = None
 
     def prepare(self, A: sp.spmatrix) -> sp.csr_matrix:
@@ -110,9 +113,16 @@ class Submatrix(Gather):
         # submatrices of the same rows (A_II and A_IΓ) pass one dict: the rows' entries found for the
         # first are taken by the next instead of found again (600x600 2D poses: 0.4 s per build)
         self.shared = shared
-        self.col_map = np.full(n, -1, dtype=np.int32 if len(cols) < 2**31 - 1 else np.int64)
-        self.col_map[cols] = np.arange(len(cols))
+        self.cols, self.n = np.asarray(cols), n
         self.n_cols = len(cols)
+
+    def _column_map(self) -> np.ndarray:
+        """Each of A's columns' place among ``cols`` (−1: not one), for the entrywise positions only:
+        made when asked, not kept (an n-long array per gather: 1M 2D poses, the extension's pieces'
+        A_II and A_IΓ held 137 MiB of them beside the build and CG while the block path never read them)."""
+        col_map = np.full(self.n, -1, dtype=np.int32 if self.n_cols < 2**31 - 1 else np.int64)
+        col_map[self.cols] = np.arange(self.n_cols)
+        return col_map
 
     def _positions(self, A: sp.csr_matrix):
         if self.vertex_sets is not None:
@@ -133,7 +143,7 @@ class Submatrix(Gather):
                 held.clear()
                 held.update(rows=self.rows, key=key, pattern=(A.indptr, A.indices), at=at, ranges=ranges,
                             columns=columns)
-        local = self.col_map[columns]
+        local = self._column_map()[columns]
         del columns
         keep = local >= 0
         kept = np.zeros(len(at) + 1, dtype=np.int64)  # entries kept before each position

@@ -82,6 +82,9 @@ def test_one_factorization_at_a_time_gives_the_same_preconditioner(survey):
     assert all((g.factor is None or not g.factor.has_numeric) and g.A_II.pattern is None and g.A_IG.pattern is None for g in low.extension.groups)
     analysis = lambda f: f._analysis if hasattr(f, "_analysis") else f._L.value  # noqa: E731 (scikit-sparse / ctypes)
     analyses = [analysis(g.factor) for g in low.extension.groups]
+    # the subdomain blocks' gather positions too (found again by the next refactorization)
+    assert all(c[2].pattern is None and c[2].src is None for c in low.one_level.solver._chunks)
+    assert all(g.pattern is not None and g.src is not None for g in (c[2] for c in full.one_level.solver._chunks))
     low.release()  # as before the next build: the subdomain factors' numbers go too
     assert not any(c[3].has_numeric for c in low.one_level.solver._chunks)
     low.update(H, geometry)  # a rebuild: numbers only (the analyses kept), gather positions found anew

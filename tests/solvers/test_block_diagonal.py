@@ -237,3 +237,40 @@ def test_chunks_on_the_local_threads_give_the_numbers_of_one_thread():
     threaded.release()
     threaded.update(H * 2.0)
     assert np.allclose(threaded.matvec(x), serial.matvec(x) / 2.0, rtol=1e-12, atol=0)
+
+
+def test_forgotten_positions_are_found_again_and_the_analyses_kept():
+    """With ``keep_positions`` False (each chunk's gather positions dropped once gathered) an update for new numbers in the same
+    pattern finds the positions again, keeps every chunk's factor object (its analysis: numbers only)
+    and applies the operator of a solver that never forgot; a matrix of another pattern is analysed anew."""
+    from gtsam_schwarz.solvers import BlockDiagonalSolver
+
+    prob = lawnmower(16, 16, sigma=0.01, seed=1)
+    lin = NativeLinearizer.from_arrays(**prob.arrays)
+    H = sp.csr_matrix(lin.linearize(lin.initial_state()).H + sp.identity(lin.offsets[-1]) * 1e-3)
+    sets = decompose(GraphStructure.from_matrix(H, lin.offsets), 8, "metis", 1).index_sets(True)
+    x = np.random.default_rng(2).standard_normal(H.shape[0])
+    forgetful, kept = BlockDiagonalSolver(sets), BlockDiagonalSolver(sets)
+    forgetful.keep_positions = False
+    for s in (forgetful, kept):
+        s.CHUNK_ENTRIES = 2000
+        s.update(H)
+    assert len(forgetful._chunks) > 2
+    factors = [c[3] for c in forgetful._chunks]
+    assert all(c[2].pattern is None and c[2].src is None for c in forgetful._chunks)
+    H2 = H.copy()
+    H2.data = H2.data * (1.0 + 0.1 * np.random.default_rng(3).random(H2.nnz))
+    H2 = sp.csr_matrix(0.5 * (H2 + H2.T))   # symmetric again, the same pattern
+    assert np.array_equal(H2.indices, H.indices) and np.array_equal(H2.indptr, H.indptr)
+    forgetful.update(H2)
+    kept.update(H2)
+    assert [c[3] for c in forgetful._chunks] == factors   # refactorized, not analysed again
+    assert all(c[2].src is None for c in forgetful._chunks) and all(c[2].src is not None for c in kept._chunks)
+    assert np.allclose(forgetful.matvec(x), kept.matvec(x), rtol=1e-12, atol=1e-14)
+    n = H.shape[0]
+    extra = sp.coo_matrix((np.full(3, 1e-6), ([0, 1, 2], [n - 1, n - 2, n - 3])), shape=H.shape)
+    H3 = sp.csr_matrix(H + extra + extra.T)   # more entries than H: another pattern
+    assert H3.nnz > H.nnz
+    forgetful.update(H3)
+    assert all(c[3] is not f for c, f in zip(forgetful._chunks, factors))   # analysed anew
+    assert np.allclose(forgetful.matvec(x), BlockDiagonalSolver(sets, H3).matvec(x), rtol=1e-10, atol=1e-12)
