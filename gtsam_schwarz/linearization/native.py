@@ -448,15 +448,25 @@ class NativeLinearizer:
         self._setup({d: (skeys, between, prior)}, None, np.zeros(0, np.uint64), np.zeros(0, np.int64), None)
         self.seconds_construct = time.perf_counter() - t0
         if d == 3:
-            P = np.asarray(poses, dtype=np.float64).reshape(-1, 3)[order]
-            self._initial = NativeState(pose2=nk.pose2_state(P[:, 0], P[:, 1], P[:, 2]))
+            P = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
         else:
-            R, t = _pose3_arrays(poses, "poses")
-            self._initial = NativeState(R3=np.ascontiguousarray(R[order]), t3=np.ascontiguousarray(t[order]))
+            P = _pose3_arrays(poses, "poses")
+        # their state is made when asked (an optimizer given gtsam.Values reads those instead:
+        # 1M 2D poses, 30 MB and ~30 ms not spent)
+        self._initial, self._initial_poses = None, (d, P, order)
         return self
 
     def initial_state(self) -> NativeState:
-        """The state of the poses given to :meth:`from_arrays`."""
+        """The state of the poses given to :meth:`from_arrays` (read from their arrays on the first call)."""
+        if self._initial is None:
+            d, P, order = self._initial_poses
+            if d == 3:
+                P = P[order]
+                self._initial = NativeState(pose2=nk.pose2_state(P[:, 0], P[:, 1], P[:, 2]))
+            else:
+                R, t = P
+                self._initial = NativeState(R3=np.ascontiguousarray(R[order]), t3=np.ascontiguousarray(t[order]))
+            self._initial_poses = None
         return self._initial
 
     # -----------------------------------------------------------------------------------------
@@ -483,7 +493,7 @@ class NativeLinearizer:
             return np.searchsorted(self.keys, k)
 
         self._k2 = self._k3 = None
-        self._base = None  # (gtsam.Values read by state(), its state, the rows read): the base of values()
+        self._base = None  # (gtsam.Values read by state(), the rows read): the base of values()
         rows, cols = [], []
         for d, spec in ((3, k2), (6, k3)):
             if spec is None:
@@ -531,6 +541,7 @@ class NativeLinearizer:
         t0 = time.perf_counter()
         self._pattern = nk.BlockPattern(self.dims, rows, cols)
         self._plan()
+        self._pattern.forget_block_keys()   # made again only if a later lookup of blocks needs them
         self._diagonal = self._pattern.diagonal_positions()
         self._seconds_pattern = time.perf_counter() - t0
 
@@ -689,7 +700,7 @@ class NativeLinearizer:
             # the result will be these values retracted (one C++ call) by the local coordinates of the
             # final poses, not 2·n pybind11 calls building poses and inserting them. Referenced, not
             # copied (262 145 poses: 85 ms); values() checks that they still hold what was read.
-            self._base = (values, st, read)
+            self._base = (values, read)   # (the start's state is made again from the rows read)
         return st
 
     @property
@@ -728,11 +739,12 @@ class NativeLinearizer:
         one insert per pose. Pose3s are read back and compared (GTSAM's Pose3 chart is a build
         option): a chart other than :func:`~.native_kernels.pose3_retract`'s falls back to inserts."""
         if self._base is not None and state.others is None and self._base_unchanged():
-            base, start, _ = self._base
+            base, read = self._base
             if self._k2 is not None:
-                delta = nk.pose2_local(start.pose2, state.pose2)
+                delta = nk.pose2_local(nk.pose2_state(read[:, 0], read[:, 1], read[:, 2]), state.pose2)
             else:
-                delta = nk.pose3_local(start.R3, start.t3, state.R3, state.t3)
+                delta = nk.pose3_local(np.ascontiguousarray(read[:, :9].reshape(-1, 3, 3)), np.ascontiguousarray(read[:, 9:12]),
+                                       state.R3, state.t3)
             vv = gtsam.VectorValues()
             deque(map(vv.insert, self._kind().keys.tolist(), delta), maxlen=0)  # the calls without a Python loop
             out = base.retract(vv)
@@ -753,7 +765,7 @@ class NativeLinearizer:
     def _base_unchanged(self) -> bool:
         """Whether the values read by state() still hold the poses read (the caller may have changed
         them since): their size, keys and poses, by one C++ extraction (262 145 Pose2s: 40 ms)."""
-        base, _, read = self._base
+        base, read = self._base
         if base.size() != len(read):
             return False
         kinds = ((gtsam.utilities.allPose2s, gtsam.utilities.extractPose2) if self._k2 is not None

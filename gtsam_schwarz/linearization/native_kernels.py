@@ -921,9 +921,14 @@ class BlockPattern:
         bc[bptr[uhi[by_hi]] + np.arange(npairs) - (np.cumsum(nlow) - nlow)[uhi[by_hi]]] = ulo[by_hi]
         self._diag_blocks = bptr[:-1] + nlow
         bc[self._diag_blocks] = np.arange(nv)
-        br = np.repeat(np.arange(nv), rowlen)
-        self.block_keys = br * nv + bc
+        # the blocks' vertex rows and columns in 32 bits where they fit, their search keys (row·nv + col)
+        # made when asked and dropped once the plan is made (:meth:`forget_block_keys`): 1M 2D poses,
+        # 114 → 38 MB of block arrays beside every later phase
+        vtype = np.int32 if nv < 2**31 - 1 else np.int64
+        br = np.repeat(np.arange(nv, dtype=vtype), rowlen)
+        bc = bc.astype(vtype, copy=False)
         self.block_rows, self.block_cols = br, bc
+        self._block_keys = None
         dvals = sorted_unique(dims).tolist()
         self.uniform = len(dvals) == 1
         if self.uniform:   # scipy's BSR→CSR lays out the entries (from 1 byte per entry, not 16)
@@ -960,6 +965,17 @@ class BlockPattern:
             self.indices = indices
         for arr in (self.indptr, self.indices):
             arr.flags.writeable = False
+
+    @property
+    def block_keys(self) -> np.ndarray:
+        """row·nv + col of every block, increasing (the blocks' search keys)."""
+        if self._block_keys is None:
+            self._block_keys = self.block_rows.astype(np.int64) * self.nv + self.block_cols
+        return self._block_keys
+
+    def forget_block_keys(self) -> None:
+        """Drop the blocks' search keys (8 bytes per block) until :meth:`block_index` needs them again."""
+        self._block_keys = None
 
     def _positions(self, k: np.ndarray, dr: int, dc: int) -> np.ndarray:
         row0 = self.offsets[self.block_rows[k]]
@@ -1001,8 +1017,8 @@ class BlockPattern:
         if self.uniform:
             d = self.d
             blocks = [(self.block_index(rows, cols), base, coef) for rows, cols, base, coef in assignments]
-            covered = sum(len(k) for k, _, _ in blocks) == len(self.block_keys)   # each block at most once
-            shape = (len(self.block_keys), d, d) if self.nnz <= BSR_INDEX_MAX else (self.nnz,)
+            covered = sum(len(k) for k, _, _ in blocks) == len(self.block_rows)   # each block at most once
+            shape = (len(self.block_rows), d, d) if self.nnz <= BSR_INDEX_MAX else (self.nnz,)
             src = np.empty(shape, dtype=dtype) if covered else np.full(shape, fill, dtype=dtype)
             if len(shape) == 3:   # in block order, then the conversion
                 for k, base, coef in blocks:

@@ -131,6 +131,29 @@ def test_diagonal_positions_read_the_diagonal():
         assert np.array_equal(system.H.data[system.diagonal], system.H.diagonal())
 
 
+def test_block_keys_dropped_after_the_plan_are_made_again_when_asked():
+    """The pattern's block search keys go once the gather plan is made (8 bytes per block less beside
+    every later phase); a later lookup makes them again and finds the same blocks. The block arrays
+    are 32-bit where the vertices allow."""
+    p = gs.square_loops(loops=4, points_per_side=8, sigma=0.01, seed=0)
+    lin = NativeLinearizer(p.graph, p.initial)
+    pat = lin.pattern
+    assert pat._block_keys is None
+    assert pat.block_rows.dtype == np.int32 and pat.block_cols.dtype == np.int32
+    H = lin.linearize(lin.state(p.initial)).H.tocoo()
+    off = H.row // 3 != H.col // 3
+    rows, cols = H.row[off] // 3, H.col[off] // 3
+    k = pat.block_index(rows, cols)
+    assert np.array_equal(pat.block_rows[k], rows) and np.array_equal(pat.block_cols[k], cols)
+    assert np.array_equal(pat.block_keys, np.sort(pat.block_keys))
+    try:
+        pat.block_index(np.array([0]), np.array([len(lin.keys) - 1]))   # not coupled in this graph
+        coupled = True
+    except KeyError:
+        coupled = False
+    assert coupled == bool(np.any((rows == 0) & (cols == len(lin.keys) - 1)))
+
+
 def test_construction_faults_in_fresh_heap_ahead_only_for_large_graphs(monkeypatch):
     """The construction asks for CONSTRUCTION_BYTES_PER_ENTRY per (estimated) entry of H on a helper
     thread where that is at least CONSTRUCTION_POPULATE_FROM; small graphs ask for nothing."""
