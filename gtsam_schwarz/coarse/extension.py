@@ -244,16 +244,12 @@ class _Group:
         self.A_II = Submatrix(interior, interior, n, self._shared, offsets)
         self.A_IG = Submatrix(interior, gamma, n, self._shared, offsets)
         self.factor = None
-        self._released = None  # A's pattern when the factor's numbers and the gathers were dropped
         self._same = None  # prepare's finding: the factor's analysis applies to A (None: not prepared)
 
     def prepare(self, A) -> None:
         """A_II's positions for A (symbolic; the groups one after the other) and whether the factor's
         analysis still applies, for a :meth:`refactor` that may then run on another thread."""
-        pattern = self.A_II.pattern or self._released
-        self.A_II.prepare(A)
-        self._same = pattern is not None and (self.A_II.pattern is pattern or pattern.matches(A))
-        self._released = None
+        self._same = self.A_II.renew(A)[1]
 
     def refactor(self, A):
         if self._same is None:
@@ -273,7 +269,6 @@ class _Group:
 
     def release(self) -> None:
         """Drop the factor's numbers and the gathers' positions; keep the symbolic analysis."""
-        self._released = self.A_II.pattern
         if isinstance(self.factor, (SparseCholesky, SimplicialCholesky)):
             self.factor.release_numeric()
         else:

@@ -254,11 +254,7 @@ class BlockDiagonalSolver:
         fresh = []
         with sharing_vertex_level():   # the chunks share A's vertex level while finding positions
             for chunk in self._chunks:   # the positions (symbolic) one chunk after the other
-                gather = chunk[2]
-                pattern = gather.pattern or gather.forgotten
-                A = gather.prepare(A)
-                gather.forgotten = None
-                same = pattern is not None and (gather.pattern is pattern or pattern.matches(A))
+                A, same = chunk[2].renew(A)
                 fresh.append(chunk[3] is None or not same)
                 if fresh[-1]:
                     chunk[3] = None

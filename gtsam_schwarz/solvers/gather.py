@@ -67,6 +67,14 @@ class Gather:
         self.forgotten = self.pattern or self.forgotten
         self.pattern = self.src = self.indices = self.indptr = None
 
+    def renew(self, A: sp.spmatrix) -> tuple[sp.csr_matrix, bool]:
+        """:meth:`prepare` for A, and whether A has the pattern of the positions held before (or last
+        forgotten): a factorization of an earlier B then still fits the new one."""
+        before = self.pattern or self.forgotten
+        A = self.prepare(A)
+        self.forgotten = None
+        return A, before is not None and (self.pattern is before or before.matches(A))
+
     def prepare(self, A: sp.spmatrix) -> sp.csr_matrix:
         """The positions for A's pattern (found unless known; B's numbers are not kept); returns A as
         the sorted CSR matrix that :meth:`__call__` reads."""
