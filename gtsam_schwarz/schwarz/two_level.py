@@ -167,6 +167,10 @@ class TwoLevelSchwarz(SumOperator):
         low = self.memory.low_memory
         self.extension.block_columns = self.memory.block_columns
         self.extension.keep_factors = not low
+        # low memory: the subdomain blocks' gather positions are dropped chunk by chunk as they are
+        # gathered (else they wait for the next refactorization beside the factors, CG and the next
+        # linearization: 1M 2D poses, 383 MiB; LM there keeps the subdomains to the end)
+        self.one_level.solver.keep_positions = not low
         # the previous Φ is not needed while the new one is built: its storage takes the new numbers
         previous = self.coarse_space.basis if self.coarse_space is not None else None
         self.release(factors=low)
@@ -289,12 +293,6 @@ class TwoLevelSchwarz(SumOperator):
     def refactor_subdomains(self, A):
         """The one-level part's factorizations for A, the coarse level kept (after :meth:`update_coarse`
         for the same A, when the kept factorizations proved too stale)."""
-        solver = self.one_level.solver
-        if hasattr(solver, "keep_positions"):
-            # low memory: the blocks' gather positions are dropped chunk by chunk as they are gathered
-            # (else they wait for the next refactorization beside the factors, CG and the next
-            # linearization: 1M 2D poses, 383 MiB; LM there keeps the subdomains to the end)
-            solver.keep_positions = not (self.memory is not None and self.memory.low_memory)
         self.one_level.update(A)
         self._subdomains_factored = True
         return self
