@@ -59,3 +59,39 @@ def test_nothing_populated_without_the_tuned_allocator():
     r = _probe("untuned")
     assert not r["started"]
     assert r["later_faults"] > 40000   # numpy's 192 MiB mapped afresh: every page faulted
+
+
+ORDER_PROBE = r"""
+import json, sys
+from gtsam_schwarz.util import heap
+heap.tune_allocator()
+real = heap._libc()
+calls = []
+class Recording:   # the real allocator; madvise recorded, then done
+    malloc, free = real.malloc, real.free
+    def madvise(self, addr, size, advice):
+        calls.append((int(addr), int(size)))
+        return real.madvise(addr, size, advice)
+heap._libc = lambda: Recording()
+thread = heap.populate_ahead(64 << 20)
+if thread is not None:
+    thread.join()
+print(json.dumps({"started": thread is not None, "calls": calls}))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator and madvise: Linux only")
+def test_the_block_is_populated_from_its_far_end_back():
+    """The main thread's allocations are carved from the block's near end: the helper starts at the
+    other end and walks back, step by step, over the whole block."""
+    out = subprocess.run([sys.executable, "-c", ORDER_PROBE], capture_output=True, text=True, check=True)
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    if not r["started"] or not r["calls"]:
+        pytest.skip("allocator not tunable here")
+    calls = r["calls"]
+    if len(calls) == 1:
+        pytest.skip("kernel without MADV_POPULATE_WRITE (the first call failed)")
+    starts = [a for a, _ in calls]
+    assert starts == sorted(starts, reverse=True)                     # far end first, then back
+    assert all(a + s == prev for (a, s), prev in zip(calls[1:], starts[:-1]))   # no gap, no overlap
+    assert sum(s for _, s in calls) >= (64 << 20) - 2 * 4096          # the whole block
