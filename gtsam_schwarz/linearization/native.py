@@ -274,6 +274,16 @@ class _Others:
     touched3: np.ndarray
 
 
+def _pose2_of_rows(rows: np.ndarray) -> np.ndarray:
+    """The Pose2 state of ``extractPose2``'s rows (x, y, θ)."""
+    return nk.pose2_state(rows[:, 0], rows[:, 1], rows[:, 2])
+
+
+def _pose3_of_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(R (n, 3, 3), t (n, 3)) of ``extractPose3``'s rows (R row-major, then t)."""
+    return np.ascontiguousarray(rows[:, :9].reshape(-1, 3, 3)), np.ascontiguousarray(rows[:, 9:12])
+
+
 class NativeLinearizer:
     """:class:`~gtsam_schwarz.linearization.base.Linearizer` with vectorized numpy kernels for pose graphs.
 
@@ -687,12 +697,11 @@ class NativeLinearizer:
         st = NativeState()
         if self._k2 is not None:
             rows = self._rows(values, self._k2.keys, gtsam.utilities.allPose2s, gtsam.utilities.extractPose2)
-            st.pose2 = nk.pose2_state(rows[:, 0], rows[:, 1], rows[:, 2])
+            st.pose2 = _pose2_of_rows(rows)
             read = rows
         if self._k3 is not None:
             rows = self._rows(values, self._k3.keys, gtsam.utilities.allPose3s, gtsam.utilities.extractPose3)
-            st.R3 = np.ascontiguousarray(rows[:, :9].reshape(-1, 3, 3))
-            st.t3 = np.ascontiguousarray(rows[:, 9:12])
+            st.R3, st.t3 = _pose3_of_rows(rows)
             read = rows
         if self._others is not None and self._others.var_keys:
             st.others = values.extract(self._others.var_keys)
@@ -741,10 +750,9 @@ class NativeLinearizer:
         if self._base is not None and state.others is None and self._base_unchanged():
             base, read = self._base
             if self._k2 is not None:
-                delta = nk.pose2_local(nk.pose2_state(read[:, 0], read[:, 1], read[:, 2]), state.pose2)
+                delta = nk.pose2_local(_pose2_of_rows(read), state.pose2)
             else:
-                delta = nk.pose3_local(np.ascontiguousarray(read[:, :9].reshape(-1, 3, 3)), np.ascontiguousarray(read[:, 9:12]),
-                                       state.R3, state.t3)
+                delta = nk.pose3_local(*_pose3_of_rows(read), state.R3, state.t3)
             vv = gtsam.VectorValues()
             deque(map(vv.insert, self._kind().keys.tolist(), delta), maxlen=0)  # the calls without a Python loop
             out = base.retract(vv)

@@ -83,9 +83,9 @@ def populate_ahead(nbytes: float) -> threading.Thread | None:
     region contend (the 1M-pose model problem, fresh bench children alternated: 13.4-15.1 s, median
     13.9, against 14.8-16.9 s, median 15.7, front to back; the other cases unchanged). A request
     made while an earlier one still runs takes its block now and waits for that thread (one helper
-    at a time: the main thread keeps the other core). Returns the thread; None (nothing done) unless :func:`tune_allocator`
-    applied, for less than 16 MiB, or with GTSAM_SCHWARZ_POPULATE=0. On kernels before 5.14 the
-    thread's first madvise fails and it stops."""
+    at a time: the main thread keeps the other core). Returns the thread; None (nothing done)
+    unless :func:`tune_allocator` applied, for less than 16 MiB, or with GTSAM_SCHWARZ_POPULATE=0.
+    On kernels before 5.14 the thread's first madvise fails and it stops."""
     nbytes = int(nbytes) // _PAGE * _PAGE
     earlier = _state["populating"]
     if not _state["tuned"] or nbytes < (16 << 20) or os.environ.get("GTSAM_SCHWARZ_POPULATE", "1") == "0":
