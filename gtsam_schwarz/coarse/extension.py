@@ -66,21 +66,23 @@ class CoarseBasis:
 
     TRANSFORM_CHUNK = 1 << 21  # entries of Φ per step of transform_vertex_rows (its temporaries)
 
-    def transform_vertex_rows(self, T: np.ndarray) -> None:
-        """Φ ← diag(T_1, …, T_m) Φ in place, T (m, d, d) for the vertices of :meth:`vertex_rows`
-        (its storage and pattern kept: an entry a row of a vertex lacks is zero in the product when
-        every row's pattern contains those of the rows its T mixes in, as for rigid modes). Vertices
-        whose d rows share one pattern (the interiors) are multiplied as dense d × K blocks, those
-        whose rows' columns are nested in their longest row's (the interface, whose rotation rows
-        lack the translation columns) as dense blocks on those columns, any others entry by entry."""
+    def transform_vertex_rows(self, T, d: int | None = None) -> None:
+        """Φ ← diag(T_1, …, T_m) Φ in place, T (m, d, d) for the vertices of :meth:`vertex_rows`, or a
+        function of ``d`` × ``d`` maps giving T for the positions ``idx`` among them, called for a block of
+        vertices at a time: no m × d × d array beside the caller's peak (1M 2D poses: 69 MiB, and its
+        factors' temporaries). Storage and pattern are kept: an entry a row of a vertex lacks is zero in
+        the product when every row's pattern contains those of the rows its T mixes in, as for rigid
+        modes. Vertices whose d rows share one pattern (the interiors) are multiplied as dense d × K
+        blocks, those whose rows' columns are nested in their longest row's (the interface, whose
+        rotation rows lack the translation columns) as dense blocks on those columns, any others entry
+        by entry."""
         L = self.local
-        d = T.shape[1]
-        m = len(T)
+        T_of = T if callable(T) else T.__getitem__
         if not L.has_sorted_indices:
             L.sort_indices()
-        indptr = L.indptr.astype(np.int64)
-        lengths = np.diff(indptr).reshape(m, d)
-        start = indptr[:-1:d]   # first entry of every vertex
+        d = int(d) if callable(T) else T.shape[1]
+        lengths = np.diff(L.indptr).reshape(-1, d)   # in the index type: no int64 copies
+        start = L.indptr[:-1:d]   # first entry of every vertex (a view)
         uniform = self._uniform_vertices(lengths, start)
         data = L.data
         K = lengths[:, 0]
@@ -91,13 +93,13 @@ class CoarseBasis:
             step = max(1, self.TRANSFORM_CHUNK // (d * int(k)))
             for c0 in range(0, len(verts), step):   # blocks of vertices (bounded temporaries)
                 v = verts[c0:c0 + step]
-                at = start[v, None] + np.arange(d * int(k))
-                data[at] = np.matmul(T[v], data[at].reshape(len(v), d, int(k))).reshape(len(v), -1)
+                at = start[v, None].astype(np.int64) + np.arange(d * int(k))
+                data[at] = np.matmul(T_of(v), data[at].reshape(len(v), d, int(k))).reshape(len(v), -1)
         other = np.flatnonzero(~uniform)
         if len(other):
-            other = self._transform_nested(T, other, start, lengths, d)
+            other = self._transform_nested(T_of, other, start, lengths, d)
         if len(other):
-            self._transform_entries(T, other, start, lengths, d)
+            self._transform_entries(T_of, other, start, lengths, d)
 
     def _uniform_vertices(self, lengths: np.ndarray, start: np.ndarray) -> np.ndarray:
         """Whether the d rows of each vertex have one pattern (same lengths and columns). An
@@ -117,11 +119,12 @@ class CoarseBasis:
         same[cand[np.unique(owner[bad])]] = False
         return same
 
-    def _transform_nested(self, T, verts, start, lengths, d) -> np.ndarray:
+    def _transform_nested(self, T_of, verts, start, lengths, d) -> np.ndarray:
         """Vertices whose rows' columns all lie in the columns of their longest row (interface rows:
         the rotation rows hold a subset of the others' columns), multiplied as dense d × L blocks on
-        those L columns: each entry placed by one search among them. Returns the vertices that are
-        not nested (for :meth:`_transform_entries`)."""
+        those L columns: each entry placed by one search among them (``T_of``: the maps of vertex
+        positions, :meth:`transform_vertex_rows`). Returns the vertices that are not nested (for
+        :meth:`_transform_entries`)."""
         L = self.local
         data, indices, nc = L.data, L.indices, max(L.shape[1], 1)
         longest = lengths[verts].max(axis=1)
@@ -157,17 +160,17 @@ class CoarseBasis:
                 col = at - local_v * width   # place among the vertex's union columns
                 D = np.zeros((m, d, width))
                 D[local_v, i, col] = data[pos]
-                D = np.matmul(T[v], D)
+                D = np.matmul(T_of(v), D)
                 data[pos] = D[local_v, i, col]
         return np.sort(np.concatenate(left)) if left else np.zeros(0, dtype=np.int64)
 
-    def _transform_entries(self, T, verts, start, lengths, d) -> None:
+    def _transform_entries(self, T_of, verts, start, lengths, d) -> None:
         """The general case of :meth:`transform_vertex_rows` for the rows of ``verts``: every entry
         (v, i, c) ← Σ_k T_v[i, k] Φ[(v, k), c], the entry of row k in column c found by a search of
         the sorted (row, column) keys (0 where row k has no entry there); in blocks of vertices."""
         L = self.local
         data, indices, nc = L.data, L.indices, max(L.shape[1], 1)
-        mixes = np.any(T[verts] != 0.0, axis=0) & ~np.eye(d, dtype=bool)   # (i, k ≠ i) pairs T mixes
+        mixes = np.any(T_of(verts) != 0.0, axis=0) & ~np.eye(d, dtype=bool)   # (i, k ≠ i) pairs T mixes
         n_v = lengths[verts].sum(axis=1)
         ends = np.cumsum(n_v)
         c0 = 0
@@ -176,19 +179,21 @@ class CoarseBasis:
             c1 = max(c0 + 1, int(np.searchsorted(ends, base + self.TRANSFORM_CHUNK // 2, side="right")))
             v, n = verts[c0:c1], n_v[c0:c1]
             pos = np.repeat(start[v] - (ends[c0:c1] - n - base), n) + np.arange(int(n.sum()))
-            row = np.repeat((v[:, None] * d + np.arange(d)).ravel(), lengths[v].ravel())
-            vertex, i = np.divmod(row, d)
+            Tv = T_of(v)
+            local = np.repeat(np.arange(len(v) * d), lengths[v].ravel())   # the block's rows
+            vertex, i = np.divmod(local, d)   # (positions in v)
+            row = v[vertex] * d + i
             col = indices[pos].astype(np.int64)
             key = row * nc + col
             old = data[pos]
-            new = T[vertex, i, i] * old   # k = i: the entry itself
+            new = Tv[vertex, i, i] * old   # k = i: the entry itself
             for k in range(d):
                 sel = np.flatnonzero(mixes[i, k])
                 if not len(sel):
                     continue
-                want = (vertex[sel] * d + k) * nc + col[sel]
+                want = (v[vertex[sel]] * d + k) * nc + col[sel]
                 at = np.minimum(np.searchsorted(key, want), len(key) - 1)
-                new[sel] += np.where(key[at] == want, T[vertex[sel], i[sel], k] * old[at], 0.0)
+                new[sel] += np.where(key[at] == want, Tv[vertex[sel], i[sel], k] * old[at], 0.0)
             data[pos] = new
             c0 = c1
 

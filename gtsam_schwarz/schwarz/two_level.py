@@ -280,7 +280,9 @@ class TwoLevelSchwarz(SumOperator):
         return False
 
     def _transform(self, old: VertexGeometry, new: VertexGeometry, vertices: np.ndarray) -> None:
-        self.coarse_space.basis.transform_vertex_rows(rigid_transport(old, new, vertices))
+        """Φ's vertex rows multiplied by their rigid transports, made a block of vertices at a time."""
+        self.coarse_space.basis.transform_vertex_rows(lambda idx: rigid_transport(old, new, vertices[idx]),
+                                                      3 if new.d == 2 else 6)
 
     def _prepare_subdomains(self, A):
         """A future of the one-level solver's symbolic preparation for A on the side thread (None

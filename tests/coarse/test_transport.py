@@ -98,6 +98,32 @@ def test_vertex_blocks_multiplied_in_place_equal_the_block_diagonal_product(buil
     assert entrywise and entrywise[-1] > 0
 
 
+def test_the_maps_made_a_block_of_vertices_at_a_time_give_the_same_basis(built, monkeypatch):
+    """T given as a function of vertex positions (the transport's way: no m × d × d array) is asked
+    for blocks of vertices only and gives Φ bit for bit as the whole array does; so does the
+    entry-by-entry path of a plain sparse Φ."""
+    H, M, geometry = _operator(built)
+    basis = M.coarse_space.basis
+    d = 3 if geometry.d == 2 else 6
+    vertices = basis.vertex_rows(d)
+    T = rigid_transport(geometry, _moved(geometry, np.random.default_rng(7)), vertices)
+    data = basis.local.data.copy()
+    basis.transform_vertex_rows(T)
+    whole = basis.local.data.copy()
+    basis.local.data[:] = data
+    monkeypatch.setattr(CoarseBasis, "TRANSFORM_CHUNK", 4 * d * d)   # a few vertices per block
+    asked = []
+    basis.transform_vertex_rows(lambda idx: (asked.append(len(idx)), T[idx])[1], d)
+    assert np.array_equal(basis.local.data, whole)
+    assert asked and max(asked) < len(vertices) and sum(asked) >= len(vertices)
+    rng = np.random.default_rng(8)
+    full = sp.csr_matrix(np.where(rng.random((8 * d, 5)) < 0.5, rng.normal(size=(8 * d, 5)), 0.0))
+    dense_T = rng.normal(size=(8, d, d))
+    a, b = CoarseBasis(full.copy(), np.arange(8 * d)), CoarseBasis(full.copy(), np.arange(8 * d))
+    a.transform_vertex_rows(dense_T)
+    b.transform_vertex_rows(lambda idx: dense_T[idx], d)
+    assert np.array_equal(a.local.data, b.local.data)
+
 def test_transport_keeps_a0_and_the_subdomain_factors_and_moves_the_interface_values(built):
     """After transport, Φ's interface rows are the rigid modes at the new poses that a fresh build
     writes (the same span per coarse node), A_0's factorization is the old one, and the operator is
