@@ -93,7 +93,7 @@ class CoarseBasis:
             step = max(1, self.TRANSFORM_CHUNK // (d * int(k)))
             for c0 in range(0, len(verts), step):   # blocks of vertices (bounded temporaries)
                 v = verts[c0:c0 + step]
-                at = start[v, None].astype(np.int64) + np.arange(d * int(k))
+                at = start[v, None] + np.arange(d * int(k))   # (int64: the arange's type)
                 data[at] = np.matmul(T_of(v), data[at].reshape(len(v), d, int(k))).reshape(len(v), -1)
         other = np.flatnonzero(~uniform)
         if len(other):

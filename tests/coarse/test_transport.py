@@ -124,6 +124,7 @@ def test_the_maps_made_a_block_of_vertices_at_a_time_give_the_same_basis(built, 
     b.transform_vertex_rows(lambda idx: dense_T[idx], d)
     assert np.array_equal(a.local.data, b.local.data)
 
+
 def test_transport_keeps_a0_and_the_subdomain_factors_and_moves_the_interface_values(built):
     """After transport, Φ's interface rows are the rigid modes at the new poses that a fresh build
     writes (the same span per coarse node), A_0's factorization is the old one, and the operator is
