@@ -170,7 +170,6 @@ class CoarseBasis:
         the sorted (row, column) keys (0 where row k has no entry there); in blocks of vertices."""
         L = self.local
         data, indices, nc = L.data, L.indices, max(L.shape[1], 1)
-        mixes = np.any(T_of(verts) != 0.0, axis=0) & ~np.eye(d, dtype=bool)   # (i, k ≠ i) pairs T mixes
         n_v = lengths[verts].sum(axis=1)
         ends = np.cumsum(n_v)
         c0 = 0
@@ -180,6 +179,7 @@ class CoarseBasis:
             v, n = verts[c0:c1], n_v[c0:c1]
             pos = np.repeat(start[v] - (ends[c0:c1] - n - base), n) + np.arange(int(n.sum()))
             Tv = T_of(v)
+            mixes = np.any(Tv != 0.0, axis=0) & ~np.eye(d, dtype=bool)   # (i, k ≠ i) pairs this block's T mixes
             local = np.repeat(np.arange(len(v) * d), lengths[v].ravel())   # the block's rows
             vertex, i = np.divmod(local, d)   # (positions in v)
             row = v[vertex] * d + i
