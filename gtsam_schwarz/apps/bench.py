@@ -432,7 +432,8 @@ def _header(report: dict) -> list[str]:
             f"- command: `{report['command']}`",
             f"- date: {report['date']}",
             f"- machine: {m['cpu_count']} CPUs ({m['cpu']}), {m['memory_gib']} GiB, {m['platform']}"
-            + (f"; fresh memory's first touch {m['first_touch_ms_per_mib']:g} ms/MiB (64 MiB, before the runs)"
+            + (f"; fresh memory's first touch {m['first_touch_ms_per_mib']:g} ms/MiB (64 MiB, before the runs: a lower "
+               "bound, see docs/survey.md, thirty-third pass)"
                if m.get("first_touch_ms_per_mib") is not None else ""),
             f"- versions: Python {m['python']}, gtsam {m['gtsam']}, numpy {m['numpy']}, scipy {m['scipy']}, "
             f"gtsam-schwarz {m['gtsam_schwarz']}; local factorizations: {m.get('sparse_backend', '?')}"
@@ -547,8 +548,11 @@ def machine() -> dict:
 
 def first_touch_ms_per_mib(mib: int = 64) -> float:
     """Milliseconds per MiB to write fresh memory once (page faults and zeroing; in a virtual machine
-    also the host backing the page): 0.2-0.3 on this project's machines at best, 2.5-10 when the host
-    has taken the pages back. Every solver pays it for the memory it allocates, so it scales the rows."""
+    also the host backing the page): 0.1-0.3 on this project's machines at best, 1-10 when the host
+    has taken the pages back. Every solver pays it for the memory it allocates (Δ MiB), so it scales the
+    rows. A lower bound of what the children meet: the guest hands freed pages back to the host a few
+    seconds after they are freed (free page reporting), so this small probe mostly gets pages freed
+    moments before, while a child, which loads its case for seconds first, gets pages taken back."""
     t = time.perf_counter()
     a = np.ones(mib * 2**17)  # mib MiB of float64, written once
     seconds = time.perf_counter() - t
