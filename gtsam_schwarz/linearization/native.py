@@ -170,13 +170,17 @@ def upper_sqrt_information(R: np.ndarray) -> np.ndarray:
 
 def sqrt_of_information(info: np.ndarray) -> np.ndarray:
     """(m, d, d) information Ω → upper-triangular R with RᵀR = Ω (Cholesky, like GTSAM's Gaussian::Information);
-    runs of equal Ω (one noise model for many factors) are factorized once."""
+    runs of equal Ω (one noise model for many factors) are factorized once, and one Ω for all factors
+    gives its R broadcast (a read-only view: no (m, d, d) array)."""
     info = np.asarray(info, dtype=np.float64)
     m = len(info)
     if m > 1:
         start = np.ones(m, dtype=bool)
         np.any(info[1:] != info[:-1], axis=(1, 2), out=start[1:])
-        if 2 * np.count_nonzero(start) < m:
+        runs = np.count_nonzero(start)
+        if runs == 1:
+            return np.broadcast_to(sqrt_of_information(info[:1])[0], info.shape)
+        if 2 * runs < m:
             first = np.flatnonzero(start)
             return np.repeat(sqrt_of_information(info[first]), np.diff(np.append(first, m)), axis=0)
     try:
@@ -355,7 +359,9 @@ class NativeLinearizer:
             s = np.asarray(ls, dtype=np.int64)
             uniq, inv = sorted_unique(s, return_inverse=True)   # the distinct noise models
             used = [spec_list[u] for u in uniq.tolist()]
-            R = np.stack([spec[0] for spec in used])[inv]
+            # one noise model for all (the usual graph): its R broadcast, no (m, d, d) copies
+            R = (np.broadcast_to(used[0][0], (len(s),) + used[0][0].shape) if len(used) == 1
+                 else np.stack([spec[0] for spec in used])[inv])
             code = np.asarray([spec[1] for spec in used], dtype=np.int8)[inv]
             param = np.asarray([spec[2] for spec in used], dtype=np.float64)[inv]
             j = np.searchsorted(kind_keys, np.asarray(lj, dtype=np.uint64))
@@ -584,7 +590,10 @@ class NativeLinearizer:
     def _factors(d: int, spec: dict):
         if d == 3:
             R = spec["R"]
-            r6 = np.stack([R[:, 0, 0], R[:, 0, 1], R[:, 0, 2], R[:, 1, 1], R[:, 1, 2], R[:, 2, 2]])
+            if R.strides[0] == 0:   # one R for all factors (broadcast): its six rows broadcast too
+                r6 = np.broadcast_to(R[0][np.triu_indices(3)][:, None], (6, len(R)))
+            else:
+                r6 = np.stack([R[:, 0, 0], R[:, 0, 1], R[:, 0, 2], R[:, 1, 1], R[:, 1, 2], R[:, 2, 2]])
             z = spec["z"]
             z = np.asarray(z, dtype=np.float64).reshape(-1, 3).T if isinstance(z, list) else z
             perm, n_iso = nk.iso_first(r6)   # isotropic-translation factors first: cheaper kernel

@@ -667,6 +667,43 @@ def test_from_arrays_equals_graph_construction(kind):
 
 
 @pytest.mark.parametrize("kind", ["pose2", "pose3"])
+def test_one_noise_model_for_all_factors_is_kept_once(kind):
+    """One information for every between factor (per factor but all equal, or one gtsam noise model
+    shared by all): its square root is kept once, broadcast over the factors (no per-factor rows), and H,
+    g and the error equal GTSAM's and those of the same information given as one (d, d) matrix."""
+    rng = np.random.default_rng(13)
+    d = 3 if kind == "pose2" else 6
+    shared = N.Gaussian.Information(spd(rng, d))
+    graph, values = pose_graph(kind, 12, lambda: shared, rng)
+    lin_g = NativeLinearizer(graph, values)
+    K = lin_g._k2 if kind == "pose2" else lin_g._k3
+    rows = K.between.R[0] if kind == "pose2" else K.between.R
+    assert rows.strides[0] == 0 and K.between.size > 1   # one R for all factors, not one per factor
+    yg = lin_g.linearize(lin_g.state(values))
+    Lam, grad = gtsam_hessian(graph, values)
+    assert rel(yg.H.toarray(), Lam) < 1e-9 and rel(yg.g, grad) < 1e-9
+    assert yg.error == pytest.approx(graph.error(values), rel=1e-12)
+    # from arrays: the same information per factor, and as one (d, d) matrix
+    n, m = 9, 14
+    keys = np.arange(n)
+    if d == 3:
+        poses = np.column_stack([rng.normal(size=(n, 2)), rng.uniform(-3, 3, n)])
+        Z = np.column_stack([rng.normal(size=(m, 2)), rng.uniform(-3, 3, m)])
+    else:
+        poses = np.concatenate([np.stack([rot3(rng).matrix() for _ in range(n)]), rng.normal(size=(n, 3, 1))], axis=2)
+        Z = (np.stack([rot3(rng).matrix() for _ in range(m)]), rng.normal(size=(m, 3)))
+    E = np.stack([rng.choice(keys, 2, replace=False) for _ in range(m)])
+    info = spd(rng, d)
+    per_factor = NativeLinearizer.from_arrays(kind, keys, poses, E, Z, information=np.repeat(info[None], m, axis=0))
+    one = NativeLinearizer.from_arrays(kind, keys, poses, E, Z, information=info)
+    for lin in (per_factor, one):
+        K = lin._k2 if kind == "pose2" else lin._k3
+        assert (K.between.R[0] if kind == "pose2" else K.between.R).strides[0] == 0
+    ya, yb = per_factor.linearize(per_factor.initial_state()), one.linearize(one.initial_state())
+    assert np.array_equal(ya.H.toarray(), yb.H.toarray()) and np.array_equal(ya.g, yb.g) and ya.error == yb.error
+
+
+@pytest.mark.parametrize("kind", ["pose2", "pose3"])
 def test_geometry_values_and_translation_mask(kind):
     rng = np.random.default_rng(12)
     graph, values = pose_graph(kind, 10, "isotropic", rng)
