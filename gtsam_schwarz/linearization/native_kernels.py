@@ -283,9 +283,10 @@ def pose2_matrices(P: np.ndarray) -> np.ndarray:
 
 
 def _rows_kept(R, shape: tuple) -> np.ndarray:
-    """R as float64 of ``shape``: kept as given where it already is (a broadcast R shared by all
-    factors stays a view; 2M factors: 92 MiB of Pose2 rows), else a contiguous copy."""
-    if isinstance(R, np.ndarray) and R.dtype == np.float64 and R.shape == shape:
+    """R as float64 of ``shape``, contiguous, except that a broadcast R (one for all factors) stays a
+    view (2M Pose2 factors: 92 MiB of rows not written)."""
+    if (isinstance(R, np.ndarray) and R.dtype == np.float64 and R.shape == shape
+            and (R.flags.c_contiguous or 0 in R.strides)):
         return R
     return np.ascontiguousarray(R, dtype=np.float64).reshape(shape)
 
