@@ -1116,7 +1116,7 @@ class NativeLinearizer:
                 R = np.empty((f.size, 2, 2))
                 R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1] = c, -s_, s_, c
                 t = f.z[:2].T.copy()
-                u00, u01, u02, u11, u12, u22 = f.R   # Ω = UᵀU of the upper-triangular U, term by term
+                u00, u01, u02, u11, u12, u22 = f.rows()   # Ω = UᵀU of the upper-triangular U, term by term
                 info = np.empty((f.size, 2, 2) if split else (f.size, 3, 3))
                 info[:, 0, 0] = u00 * u00
                 info[:, 0, 1] = info[:, 1, 0] = u00 * u01

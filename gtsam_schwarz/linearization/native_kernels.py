@@ -291,6 +291,20 @@ def _rows_kept(R, shape: tuple) -> np.ndarray:
     return np.ascontiguousarray(R, dtype=np.float64).reshape(shape)
 
 
+def _column_runs(R: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(first factor of every run, (6, runs) its column) where R's columns come in runs of equal ones,
+    at least two and on average at least two chunks long (chunks then stay inside runs, at most a
+    chunk more per run); None otherwise, or for a broadcast R (one column already)."""
+    m = R.shape[1]
+    if m < 4 * CHUNK or 0 in R.strides:
+        return None
+    change = np.flatnonzero(np.any(R[:, 1:] != R[:, :-1], axis=0)) + 1
+    if not 1 <= len(change) < m // (2 * CHUNK):
+        return None
+    starts = np.r_[0, change]
+    return starts, np.ascontiguousarray(R[:, starts])
+
+
 def _shared_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """a·b per factor; broadcast (one value for all factors) where both are."""
     if a.strides == (0,) and b.strides == (0,):
@@ -304,7 +318,9 @@ class Pose2Factors:
 
     ``R`` holds the upper-triangular square-root information per factor, rows r00 r01 r02 r11 r12 r22.
     Factors whose R is diag(ρ, ρ, r22) (isotropic translation) take a cheaper kernel; ``n_iso`` of them
-    at the front (see :func:`iso_first`) make whole chunks of that kind."""
+    at the front (see :func:`iso_first`) make whole chunks of that kind. Where R comes in a few long runs
+    of one information each (odometry, then closures), it is kept as one column per run: ``R`` is then
+    None, :meth:`rows` gives it, and every chunk lies inside one run with its R broadcast."""
 
     j: np.ndarray                 # (m,) int64 index of xj (prior: of x) among the kind's poses
     z: np.ndarray                 # (3, m) measured x, y, θ
@@ -328,13 +344,20 @@ class Pose2Factors:
         self.R = _rows_kept(self.R, (6, len(self.j)))
         self.zc, self.zs = np.cos(self.z[2]), np.sin(self.z[2])
         self.u = np.stack([self.zc * self.z[0] + self.zs * self.z[1], self.zc * self.z[1] - self.zs * self.z[0]])
-        self.r22sq = _shared_product(self.R[5], self.R[5])
-        self.rho2 = _shared_product(self.R[0], self.R[0])
+        self._runs = _column_runs(self.R)
+        if self._runs is not None:   # one column per run (1M-pose lawnmower: 92 + 31 MiB of rows not kept)
+            self.R = self.r22sq = self.rho2 = None
+        else:
+            self._products()
         self._flags()
         self._chunks = None
 
+    def _products(self) -> None:
+        self.r22sq = _shared_product(self.R[5], self.R[5])
+        self.rho2 = _shared_product(self.R[0], self.R[0])
+
     def _flags(self) -> None:
-        R = self.R
+        R = self.R if self._runs is None else self._runs[1]
         self.diagonal = not (np.any(R[1]) or np.any(R[2]) or np.any(R[4]))
         self.iso = self.diagonal and bool(np.all(R[0] == R[3]))
 
@@ -342,14 +365,32 @@ class Pose2Factors:
     def size(self) -> int:
         return len(self.j)
 
+    def rows(self, sel=None) -> np.ndarray:
+        """R's (6, m) rows (of the factors ``sel``), made from the runs where only those are kept."""
+        if self._runs is None:
+            return self.R if sel is None else self.R[:, sel]
+        starts, table = self._runs
+        if sel is None:
+            return np.repeat(table, np.diff(np.r_[starts, self.size]), axis=1)
+        return table[:, np.searchsorted(starts, np.arange(self.size)[sel], side="right") - 1]
+
     def chunks(self) -> list[tuple[int, int, "Pose2Factors"]]:
-        """(lo, hi, factors lo:hi) views of at most CHUNK factors, none straddling n_iso (built once)."""
+        """(lo, hi, factors lo:hi) views of at most CHUNK factors, none straddling n_iso or a run of
+        R (built once)."""
         if self._chunks is None:
-            bounds = chunk_bounds(self.n_iso) + [(lo + self.n_iso, hi + self.n_iso)
-                                                 for lo, hi in chunk_bounds(self.size - self.n_iso)]
+            runs = self._runs
+            cuts = {0, self.n_iso, self.size} | (set() if runs is None else set(runs[0].tolist()))
+            cuts = sorted(c for c in cuts if 0 <= c <= self.size)
+            bounds = [(lo + a, hi + a) for a, b in zip(cuts[:-1], cuts[1:]) for lo, hi in chunk_bounds(b - a)]
             self._chunks = []
             for lo, hi in bounds:
-                c = _view(self, lo, hi, ("j", "i", "zc", "zs", "r22sq", "rho2"), ("z", "R", "u"))
+                if runs is None:
+                    c = _view(self, lo, hi, ("j", "i", "zc", "zs", "r22sq", "rho2"), ("z", "R", "u"))
+                else:   # inside one run: its column broadcast
+                    c = _view(self, lo, hi, ("j", "i", "zc", "zs"), ("z", "u"))
+                    k = int(np.searchsorted(runs[0], lo, side="right")) - 1
+                    c._runs, c.R = None, np.broadcast_to(runs[1][:, k:k + 1], (6, hi - lo))
+                    c._products()
                 c._flags()
                 self._chunks.append((lo, hi, c))
         return self._chunks

@@ -703,6 +703,48 @@ def test_one_noise_model_for_all_factors_is_kept_once(kind):
     assert np.array_equal(ya.H.toarray(), yb.H.toarray()) and np.array_equal(ya.g, yb.g) and ya.error == yb.error
 
 
+def test_pose2_information_in_runs_is_kept_once_per_run(monkeypatch):
+    """Pose2 factors whose information comes in a few long runs (odometry, then closures, then a second
+    closure kind) keep one R column per run, and every chunk stays inside one run: the factor errors and
+    the arrays of the chordal start equal those of per-factor rows bit for bit, H, g and the error to
+    rounding (chunks cut at other places sum the poses' blocks in another order)."""
+    rng = np.random.default_rng(21)
+    n = 40_000
+    m = 3 * n
+    keys = np.arange(n)
+    poses = np.column_stack([rng.normal(size=(n, 2)), rng.uniform(-3, 3, n)])
+    E = np.concatenate([np.column_stack([keys[:-1], keys[1:]]), rng.integers(0, n, size=(m - n + 1, 2))])
+    E = E[E[:, 0] != E[:, 1]]
+    m = len(E)
+    Z = np.column_stack([rng.normal(size=(m, 2)), rng.uniform(-3, 3, m)])
+    run = np.repeat([0, 1, 2], [n - 1, 30_000, m - n + 1 - 30_000])   # three informations in runs
+    infos = np.stack([spd(rng, 3) for _ in range(3)])
+    info = infos[run]
+
+    def build():
+        return NativeLinearizer.from_arrays("pose2", keys, poses, E, Z, information=info, prior_keys=[0],
+                                            prior_measurements=poses[:1], prior_information=np.eye(3))
+
+    runs = build()
+    F = runs._k2.between
+    assert F.R is None and len(F._runs[0]) == 3   # three columns kept, not one per factor
+    chunks = F.chunks()
+    assert all(c.R.strides[1] == 0 for _, _, c in chunks)                    # each chunk inside one run
+    monkeypatch.setattr(nk, "_column_runs", lambda R: None)
+    rows = build()
+    assert rows._k2.between.R is not None
+    assert np.array_equal(F.rows(), rows._k2.between.R)
+    sel = rng.choice(m, 1000, replace=False)
+    assert np.array_equal(F.rows(sel), rows._k2.between.R[:, sel])
+    sa, sb = runs.initial_state(), rows.initial_state()
+    ya, yb = runs.linearize(sa), rows.linearize(sb)
+    assert rel(ya.H.data, yb.H.data) < 1e-14 and rel(ya.g, yb.g) < 1e-14
+    assert ya.error == pytest.approx(yb.error, rel=1e-14)
+    assert np.array_equal(runs.factor_errors(sa), rows.factor_errors(sb))
+    ga, gb = runs.pose_graph(), rows.pose_graph()
+    assert np.array_equal(ga["between"]["information"], gb["between"]["information"])
+
+
 @pytest.mark.parametrize("kind", ["pose2", "pose3"])
 def test_geometry_values_and_translation_mask(kind):
     rng = np.random.default_rng(12)

@@ -63,7 +63,7 @@ def _sqrt_info(F, sel: np.ndarray, d: int) -> np.ndarray:
     """(m, d, d) upper-triangular square-root information of the factors ``sel`` of F."""
     if d == 6:
         return F.R[sel]
-    r = F.R[:, sel]
+    r = F.rows(sel)
     R = np.zeros((len(sel), 3, 3))
     R[:, 0, 0], R[:, 0, 1], R[:, 0, 2], R[:, 1, 1], R[:, 1, 2], R[:, 2, 2] = r
     return R
