@@ -379,8 +379,7 @@ class Pose2Factors:
         R (built once)."""
         if self._chunks is None:
             runs = self._runs
-            cuts = {0, self.n_iso, self.size} | (set() if runs is None else set(runs[0].tolist()))
-            cuts = sorted(c for c in cuts if 0 <= c <= self.size)
+            cuts = sorted({0, self.n_iso, self.size} | (set() if runs is None else set(runs[0].tolist())))
             bounds = [(lo + a, hi + a) for a, b in zip(cuts[:-1], cuts[1:]) for lo, hi in chunk_bounds(b - a)]
             self._chunks = []
             for lo, hi in bounds:
