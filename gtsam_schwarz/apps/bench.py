@@ -177,7 +177,7 @@ def _load_our_modules() -> None:
     threadpoolctl and CHOLMOD's library handle, 3 ms each), so that module and library loading stays
     outside the timed solve, as it does for GTSAM and g2o (imported before their timers start).
     Work done on first use is still timed."""
-    from ..initialization.chordal import blas_limits
+    from ..util.blas import blas_limits
     from ..linearization import native  # noqa: F401
     from ..solvers import cholmod_symbolic
 

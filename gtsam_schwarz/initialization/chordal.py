@@ -4,8 +4,6 @@ p = argmin Σ ‖p_j − p_i − R_i t_ij‖²_W (g2o/GTSAM: x_j = x_i ∘ z_ij)
 
 from __future__ import annotations
 
-import contextlib
-import os
 import time
 from dataclasses import dataclass, field
 
@@ -18,6 +16,7 @@ from ..krylov import pcg_columns, threaded
 from ..solvers.cost import counted_simplicially, record_column_counts
 from ..solvers.sparse import SparseCholesky
 from ..util import sorted_unique
+from ..util.blas import blas_limits
 
 __all__ = ["ChordalResult", "chordal_initialization", "pose2_from", "project_to_so"]
 
@@ -664,50 +663,6 @@ def chordal_initialization(n: int, edges, R_meas, t_meas, information=None, anch
     args = dict(locals())
     with blas_limits(blas_threads):
         return _chordal(**args)
-
-
-_CONTROLLER: list = []   # one threadpoolctl controller per process, created on first use
-
-
-def blas_limits(threads: int | None):
-    """Context limiting BLAS to ``threads`` (None: a no-op), like ``threadpool_limits(threads, "blas")``
-    but through one cached controller: ``threadpool_limits`` rescans the loaded libraries (~1 ms a call)."""
-    if threads is None:
-        return contextlib.nullcontext()
-    if not _CONTROLLER:
-        _CONTROLLER.append(_blas_controller())
-    if _CONTROLLER[0] is None:
-        return contextlib.nullcontext()
-    return _CONTROLLER[0].limit(limits=threads, user_api="blas")
-
-
-# names of the loaded libraries that can be a BLAS (or a link to one); the others are not resolved
-_BLAS_NAME_HINTS = ("blas", "mkl", "blis", "lapack", "accelerate")
-
-
-def _blas_controller():
-    """threadpoolctl's controller of the loaded BLAS libraries (None without threadpoolctl).
-
-    Its full scan resolves the real path of every loaded library (~120 here, ~2 ms); only BLAS is
-    limited, so libraries whose names cannot be a BLAS are skipped before that. Falls back to the
-    full scan if threadpoolctl's internals differ or the filtered scan finds no BLAS."""
-    try:
-        from threadpoolctl import ThreadpoolController  # a project dependency; optional here
-    except ImportError:
-        return None
-    try:
-        class _BlasOnly(ThreadpoolController):
-            def _make_controller_from_path(self, filepath):
-                name = os.path.basename(filepath).lower()
-                if any(h in name for h in _BLAS_NAME_HINTS):
-                    super()._make_controller_from_path(filepath)
-
-        controller = _BlasOnly()
-        if any(lib.user_api == "blas" for lib in controller.lib_controllers):
-            return controller
-    except Exception:  # noqa: BLE001 — a threadpoolctl without this hook: the full scan below
-        pass
-    return ThreadpoolController()
 
 
 def _chordal(n, edges, R_meas, t_meas, information, anchor, anchor_pose, solver, translation_solver, preconditioner,

@@ -19,6 +19,7 @@ import numpy as np
 from scipy.linalg import eigvalsh_tridiagonal
 from scipy.linalg.blas import daxpy, zaxpy
 
+from ..util.blas import one_blas_thread
 from .spmv import threaded
 
 
@@ -98,6 +99,7 @@ DECREMENT_MIN_ITERATIONS = 5  # Ritz values before this are too rough for the bo
 DECREMENT_SAFETY = 10.0  # the Ritz λmin is an upper estimate of λmin: the left-over is counted 10×
 
 
+@one_blas_thread   # its dots and axpys on vectors: OpenBLAS's threads cost ms a call (util.blas)
 def pcg(A, b, M=None, tol: float = 1e-8, maxiter: int | None = None, x0=None,
         callback=None, norm: str = "residual", bounds=None,
         decrement_tol: float | None = None, decrement_left: float | None = None,
@@ -231,6 +233,7 @@ def _column_dots(U: np.ndarray, V: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->j", U, V)
 
 
+@one_blas_thread
 def pcg_columns(A, B, M=None, tol: float = 1e-8, maxiter: int | None = None) -> tuple[np.ndarray, list[CGInfo]]:
     """Independent preconditioned CG solves of A X = B, one per column of B (n, k), run side by side:
     each iteration applies A and M once to all columns still running (a few right-hand sides cost

@@ -14,7 +14,7 @@ from contextlib import nullcontext
 import numpy as np
 
 from ..dd.index_sets import vertex_dofs
-from ..initialization.chordal import blas_limits
+from ..util.blas import blas_limits
 from ..linearization.base import Linearizer, LinearSystem
 from ..util import with_small_pages
 from ..util.heap import populate_ahead
