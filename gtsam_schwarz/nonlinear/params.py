@@ -143,7 +143,7 @@ class StoppingParams:
     # bound shows the exact step to be one after which the error rule above would stop and all but
     # remaining_decrease_tol × error of it is reached; the PETSc back-end solves every step to cg_tol
     newton_decrement: bool = True
-    blas_threads: int | None = 1  # BLAS threads while iterating (None: leave the process setting)
+    blas_threads: int | None = 1  # BLAS threads while iterating (None: leave the process setting; CG's own vector operations run on one thread either way, util.blas)
     linearization: str = "auto"  # auto (native kernels for pose-graph factors, GTSAM for the rest) | native | gtsam
     initialization: str = "chordal"  # chordal (global: rotations, then translations; kept if it lowers the error) | file
     verbose: bool = False  # a line per linear solve on stdout
