@@ -19,7 +19,7 @@ from ..solvers.cholmod_native import SimplicialCholesky
 from ..solvers.factory import factorize_local
 from ..solvers.gather import pattern_of, sharing_vertex_level
 from ..util import vertex_dofs
-from ..util.sparse import as_csr, row_block, row_entries
+from ..util.sparse import as_csr, row_entries
 from ..util.threads import WORKERS, local_threads, on_local_thread, wait_all
 
 
@@ -27,7 +27,9 @@ class CoarseBasis:
     """Φ stored with its rows permuted: ``local`` = [Φ_I; Φ_Γ] (interior rows, then interface rows),
     Φ = P·local with ``order`` = the global row of each local row. Applying Φ or Φᵀ costs one
     permutation of a vector; the interior rows are written straight from the extension's solve
-    (no merge with the interface rows, no transposed copy)."""
+    (no merge with the interface rows, no transposed copy). ``local`` may hold single-precision
+    numbers (:attr:`HarmonicExtension.SINGLE_FROM`): the products then round their vector to it, and
+    A_0 is assembled from the rounded Φ, so the coarse correction stays that of a fixed basis."""
 
     def __init__(self, local: sp.csr_matrix, order: np.ndarray, plan: dict | None = None):
         self.local, self.order = local, order
@@ -44,14 +46,17 @@ class CoarseBasis:
         return L.data.nbytes + L.indices.nbytes + L.indptr.nbytes + self.order.nbytes
 
     def matvec(self, z: np.ndarray) -> np.ndarray:
-        """Φ z."""
+        """Φ z (in Φ's precision: scipy would otherwise convert Φ itself to the vector's, a copy per
+        product)."""
         y = np.empty(self.shape[0])
-        y[self.order] = self.local @ z
+        L = self.local
+        y[self.order] = L @ z.astype(L.dtype, copy=False)
         return y
 
     def rmatvec(self, x: np.ndarray) -> np.ndarray:
-        """Φᵀ x (through the CSC view of the local rows)."""
-        return self.local.T @ x[self.order]
+        """Φᵀ x (through the CSC view of the local rows; in Φ's precision, returned in double)."""
+        L = self.local
+        return (L.T @ x[self.order].astype(L.dtype, copy=False)).astype(np.float64, copy=False)
 
     def vertex_rows(self, d: int) -> np.ndarray | None:
         """The vertex of every block of ``d`` consecutive local rows, or None where the local rows
@@ -238,6 +243,15 @@ def _rows_to_csr(X: np.ndarray, k_row: np.ndarray, out: np.ndarray, rows_per_blo
         at += len(block)
 
 
+def _phi_rows(local: sp.csr_matrix, blocks: np.ndarray, d: int, ncp: int):
+    """Φ's local rows of the vertex blocks ``blocks`` (d rows each) in double precision, ``ncp``
+    columns: CSR for d = 1, BSR of d×d blocks otherwise."""
+    rows = (blocks[:, None] * d + np.arange(d)).ravel() if d > 1 else blocks
+    at, indptr = row_entries(local, rows)
+    R = sp.csr_matrix((local.data[at].astype(np.float64), local.indices[at], indptr), shape=(len(rows), ncp))
+    return R if d == 1 else R.tobsr((d, d))
+
+
 class _Group:
     """The interior dofs of some subdomains, their A_II and A_IΓ gathers and A_II's factorization."""
 
@@ -318,6 +332,12 @@ class HarmonicExtension:
     in a fill-reducing order (the one-level blocks'); the interior dofs then follow it, and A_II is
     factorized in that order (the order it induces on a subset has no more fill than on the whole).
     """
+
+    # Φ's numbers in single precision from this many entries: the largest array a two-level
+    # preconditioner holds after the subdomain factors (1M 2D lawnmower poses: 36.9M entries, 148 MiB
+    # saved); the same CG counts to 1e-10 on lawnmower 600x600 (13.2M entries), and its products'
+    # vectors rounded to it cost nothing measurable (docs/survey.md, thirty-sixth pass)
+    SINGLE_FROM = 4_000_000
 
     def __init__(self, decomposition: Decomposition, interface: Interface, block_columns: int | None = None,
                  max_groups: int = 3, vertex_order: tuple[np.ndarray, np.ndarray] | None = None):
@@ -541,8 +561,10 @@ class HarmonicExtension:
                     raise
                 self._cached = cached = (signature, plan, pattern_of(A), arrays if frozen else None)
             plan = cached[1]
-            reuse = recycle is not None and recycle.plan is plan and recycle.local.data.shape == plan["indices"].shape
-            data = recycle.local.data if reuse else np.empty(len(plan["indices"]))
+            dtype = np.float32 if len(plan["indices"]) >= self.SINGLE_FROM else np.float64
+            reuse = (recycle is not None and recycle.plan is plan and recycle.local.data.shape == plan["indices"].shape
+                     and recycle.local.data.dtype == dtype)
+            data = recycle.local.data if reuse else np.empty(len(plan["indices"]), dtype=dtype)
             del recycle
             Phi_G = sp.csr_matrix((gamma_vals[plan["g_order"]], plan["indices"][plan["nnz_I"]:], plan["ptr_G"]),
                                   shape=(len(self.gamma), nc))
@@ -562,45 +584,40 @@ class HarmonicExtension:
         # (AΦ)_I = A_II Φ_I + A_IΓ Φ_Γ = 0 for the harmonic extension, so Φᵀ A Φ = Φ_Γᵀ (AΦ)_Γ:
         # only the interface rows of A enter (Φ is dense on subdomain interiors; A Φ would not be)
         # in blocks of interface rows: A_Γ·Φ (|Γ| × n_c, K_i columns per row) never exists whole
-        if self._block > 1:
-            return CoarseBasis(local, self.order, plan), self._coarse_matrix_blocks(A, local, plan["nI"])
-        Phi_GG = row_block(local, plan["nI"], n)
-        step = self.a0_block_rows(len(self.gamma))
-        A0 = None
-        for r0 in range(0, len(self.gamma), step):
-            # (A_Γ·Φ)ᵀ Φ_Γ = A_0ᵀ: the big product's transpose is a free CSC view, and only Φ_Γ's few
-            # entries per row are converted (Φ_Γᵀ·(A_Γ·Φ) converted the product: 1 s at 91k poses)
-            part = (self._interface_rows(A, r0, r0 + step) @ local).T @ row_block(Phi_GG, r0, min(r0 + step, len(self.gamma)))
-            A0 = part if A0 is None else A0 + part
-            del part
-        del Phi_GG
-        A0 = _symmetric_part(A0)
-        return CoarseBasis(local, self.order, plan), A0
+        return CoarseBasis(local, self.order, plan), self._coarse_matrix(A, local, plan["nI"])
 
-    def _coarse_matrix_blocks(self, A: sp.csr_matrix, local: sp.csr_matrix, nI: int) -> sp.csr_matrix:
-        """A_0 = Σ_blocks Φ_Γᵀ (A_Γ·Φ) in d×d blocks (BSR: one index per block of a vertex's dofs, not
-        per entry; 3D survey 32x32x32: 0.67 s against 1.33 s for the CSR products). Φ's local rows
-        come in whole vertices (checked by the plan); its columns are padded to a multiple of d."""
-        d, n, nc = self._block, local.shape[0], local.shape[1]
+    def _coarse_matrix(self, A: sp.csr_matrix, local: sp.csr_matrix, nI: int) -> sp.csr_matrix:
+        """A_0 = Σ_blocks Φ_Γᵀ (A_Γ·Φ) over blocks of interface rows, each product in double precision
+        with only the rows of Φ its block of A_Γ reads (no whole copy of Φ: in d×d blocks it was one
+        of ~9.5 bytes per entry, 350 MiB at 1M 2D poses; a single-precision Φ would be converted
+        whole by every product). Where Φ's local rows come in whole vertices of d dofs the products
+        are in d×d blocks (BSR: one index per block of a vertex's dofs; 3D survey 32x32x32: 0.67 s
+        against 1.33 s for the CSR products), its columns padded to a multiple of d."""
+        d, nc = self._block, local.shape[1]
         ncp = -(-nc // d) * d
-        L = sp.csr_matrix((local.data, local.indices, local.indptr), shape=(n, ncp)).tobsr((d, d))
         step = -(-self.a0_block_rows(len(self.gamma)) // d) * d
         A0 = None
         for r0 in range(0, len(self.gamma), step):
             r1 = min(r0 + step, len(self.gamma))
-            X = self._interface_rows(A, r0, r1).tobsr((d, d)) @ L   # (A_Γ·Φ) for these rows
-            b0, b1 = (nI + r0) // d, (nI + r1) // d
-            lo, hi = int(L.indptr[b0]), int(L.indptr[b1])
-            G = sp.bsr_matrix((L.data[lo:hi], L.indices[lo:hi], L.indptr[b0:b1 + 1] - lo), shape=(r1 - r0, ncp))
-            part = (G.T @ X).tocsr()
+            B = self._interface_rows(A, r0, r1)   # A_Γ's rows, columns numbered as Φ's local rows
+            blocks = np.unique(B.indices // d)   # the vertex blocks of Φ's rows it reads
+            B = sp.csr_matrix((B.data, np.searchsorted(blocks, B.indices // d) * d + B.indices % d, B.indptr),
+                              shape=(r1 - r0, d * len(blocks)))
+            X = B @ _phi_rows(local, blocks, d, ncp) if d == 1 else \
+                B.tobsr((d, d)) @ _phi_rows(local, blocks, d, ncp)   # (A_Γ·Φ) for these rows
+            del B
+            G = _phi_rows(local, np.arange((nI + r0) // d, (nI + r1) // d), d, ncp)   # Φ_Γ's rows r0:r1
+            # (A_Γ·Φ)ᵀ Φ_Γ = A_0ᵀ in CSR: the big product's transpose is a free CSC view, and only Φ_Γ's
+            # few entries per row are converted (Φ_Γᵀ·(A_Γ·Φ) converted the product: 1 s at 91k poses)
+            part = (X.T @ G).tocsr() if d == 1 else (G.T @ X).tocsr()
             del X, G
             A0 = part if A0 is None else A0 + part
             del part
-        del L
+        if A0 is None:
+            A0 = sp.csr_matrix((nc, nc))
         if ncp != nc:
             A0 = A0[:nc, :nc]
-        A0 = _symmetric_part(A0)
-        return A0
+        return _symmetric_part(A0)
 
     def _interface_rows(self, A: sp.csr_matrix, r0: int, r1: int) -> sp.csr_matrix:
         """Rows Γ[r0:r1] of A, their columns numbered as Φ's local rows: entries taken by row

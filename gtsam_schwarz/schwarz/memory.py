@@ -96,13 +96,13 @@ def estimate_two_level(M, A, geometry=None) -> MemoryEstimate:
         # the gathered blocks (overlapping, A_II, A_IΓ, A_Γ·) with their source positions and one
         # shared copy of A's pattern
         "gathered matrices": MATRIX_BYTES * (local.nnz_A + A.nnz) + 4.0 * A.nnz,
-        # Φ's CSR entries (8 + 4 bytes) and the extension's kept positions of A_IΓΦ_Γ's entries in the
-        # compressed right-hand side (int32, at most one per entry of Φ_I)
-        "coarse basis": 16.0 * nnz_phi,
+        # Φ's CSR entries (8 + 4 bytes, or 4 + 4 in single precision) and the extension's kept
+        # positions of A_IΓΦ_Γ's entries in the compressed right-hand side (int32, at most one per
+        # entry of Φ_I)
+        "coarse basis": (12.0 if nnz_phi >= ext.SINGLE_FROM else 16.0) * nnz_phi,
         # A₀ and, while it is assembled, A_Γ·Φ for one block of interface rows (K columns each at most)
-        # and, where it is assembled in vertex blocks, Φ's copy in blocks (~9.5 bytes per entry of Φ)
-        "coarse matrix": (16.0 * nc * nc if dense_coarse else 48.0 * nnz_A0) + 12.0 * ext.a0_block_rows(len(ext.gamma)) * K
-                         + (9.5 * nnz_phi if ext.vertex_dofs > 1 else 0.0),
+        # with the rows of Φ that block reads, in double precision (~12 bytes per entry)
+        "coarse matrix": (16.0 * nc * nc if dense_coarse else 48.0 * nnz_A0) + 24.0 * ext.a0_block_rows(len(ext.gamma)) * K,
     }
     # the extension solves group by group (coarse.extension.column_groups): its largest right-hand side
     nI_sub = np.bincount(ext.sub, minlength=len(K_sub))

@@ -239,3 +239,35 @@ def test_coarse_matrix_in_vertex_blocks_equals_the_galerkin_product(dims, monkey
     other = gdsw_coarse_space(H, dec, M.interface, "rgdsw-linear", km.geometry(prob.initial), M.rotation,
                               km.translation_mask())
     assert np.allclose(other.A0.toarray(), space.A0.toarray(), rtol=0, atol=1e-9 * np.abs(expected).max())
+
+
+def test_single_precision_basis_gives_the_same_cg_and_its_own_galerkin_matrix(survey, monkeypatch):
+    """Φ stored in single precision (from HarmonicExtension.SINGLE_FROM entries, forced here): A_0 is
+    Φᵀ H Φ of the rounded Φ to single precision (its interior rows are harmonic to rounding), the
+    products round their vectors to it, CG takes the same iterations to 1e-10 and a rebuild writes
+    into the same single-precision storage."""
+    from gtsam_schwarz.coarse import HarmonicExtension
+
+    _, H, dec, geometry, mask = survey
+    M64, b, x64, info64 = _cg(H, dec, geometry, mask, "rgdsw-linear")
+    monkeypatch.setattr(HarmonicExtension, "SINGLE_FROM", 0)
+    M32 = make_preconditioner("rgdsw-linear", H, dec, mask, geometry=geometry)
+    basis = M32.coarse_space.basis
+    assert basis.local.dtype == np.float32 and M64.coarse_space.basis.local.dtype == np.float64
+    Phi = M32.coarse_space.Phi.astype(np.float64)
+    Phi64 = M64.coarse_space.Phi
+    assert abs(Phi - Phi64).max() <= 1e-6 * abs(Phi64).max() and abs(Phi - Phi64).max() > 0
+    expected = (Phi.T @ H @ Phi).toarray()
+    gap = np.abs(M32.coarse_space.A0.toarray() - 0.5 * (expected + expected.T)).max() / np.abs(expected).max()
+    assert gap < 1e-7
+    z = np.random.default_rng(3).standard_normal(Phi.shape[1])
+    assert np.allclose(basis.matvec(z), Phi @ z, rtol=0, atol=1e-5 * np.abs(Phi @ z).max())
+    assert basis.rmatvec(b).dtype == np.float64
+    for tol in (1e-8, 1e-10):
+        _, i64 = pcg(H, b, M64, tol=tol, maxiter=2000)
+        x32, i32 = pcg(H, b, M32, tol=tol, maxiter=2000)
+        assert i32.converged and abs(i32.iterations - i64.iterations) <= 1
+    assert np.linalg.norm(H @ x32 - b) <= 1e-10 * np.linalg.norm(b) * 1.0001
+    storage = basis.local.data
+    M32.update(H, geometry)
+    assert np.shares_memory(M32.coarse_space.basis.local.data, storage)
