@@ -603,8 +603,7 @@ class HarmonicExtension:
             blocks = np.unique(B.indices // d)   # the vertex blocks of Φ's rows it reads
             B = sp.csr_matrix((B.data, np.searchsorted(blocks, B.indices // d) * d + B.indices % d, B.indptr),
                               shape=(r1 - r0, d * len(blocks)))
-            X = B @ _phi_rows(local, blocks, d, ncp) if d == 1 else \
-                B.tobsr((d, d)) @ _phi_rows(local, blocks, d, ncp)   # (A_Γ·Φ) for these rows
+            X = (B if d == 1 else B.tobsr((d, d))) @ _phi_rows(local, blocks, d, ncp)   # (A_Γ·Φ) for these rows
             del B
             G = _phi_rows(local, np.arange((nI + r0) // d, (nI + r1) // d), d, ncp)   # Φ_Γ's rows r0:r1
             # (A_Γ·Φ)ᵀ Φ_Γ = A_0ᵀ in CSR: the big product's transpose is a free CSC view, and only Φ_Γ's
