@@ -600,9 +600,11 @@ class HarmonicExtension:
         for r0 in range(0, len(self.gamma), step):
             r1 = min(r0 + step, len(self.gamma))
             B = self._interface_rows(A, r0, r1)   # A_Γ's rows, columns numbered as Φ's local rows
-            blocks = np.unique(B.indices // d)   # the vertex blocks of Φ's rows it reads
-            B = sp.csr_matrix((B.data, np.searchsorted(blocks, B.indices // d) * d + B.indices % d, B.indptr),
+            vertex = B.indices // d
+            blocks = np.unique(vertex)   # the vertex blocks of Φ's rows it reads
+            B = sp.csr_matrix((B.data, np.searchsorted(blocks, vertex) * d + B.indices % d, B.indptr),
                               shape=(r1 - r0, d * len(blocks)))
+            del vertex
             X = (B if d == 1 else B.tobsr((d, d))) @ _phi_rows(local, blocks, d, ncp)   # (A_Γ·Φ) for these rows
             del B
             G = _phi_rows(local, np.arange((nI + r0) // d, (nI + r1) // d), d, ncp)   # Φ_Γ's rows r0:r1
