@@ -162,7 +162,7 @@ def _solve_ours(graph, initial, overrides: dict, arrays: dict | None = None) -> 
 
     _load_our_modules()
     try:
-        r = run_ours(graph, initial, SchwarzParams(**{**BASE_PARAMS, **overrides}), arrays)
+        r = run_ours(graph, initial, SchwarzParams(**{**BASE_PARAMS, **overrides}), arrays, release_arrays=True)
     except InsufficientMemoryError as exc:  # refused before the heavy work (predicted): a row of its own
         return {"failed": f"{OUT_OF_MEMORY}: {exc}", "values": None, "iterations": 0, "seconds": float("nan")}
     its = r["iterations"]
@@ -212,6 +212,8 @@ def solve(case: Case, solver: str, overrides: dict, datasets: pathlib.Path) -> d
         except peers.PeerNotInstalled as exc:
             return {"not_installed": str(exc), "stack": stack_limit()}
     graph, initial, poses, dimension, arrays = load_case(case, datasets)
+    if solver not in OURS:
+        arrays = None   # only our native linearizer reads the loader's arrays; ours drops them once it has
     loaded, load_peak = _memory_mib()
     reset = _reset_peak()
     if solver in OURS:

@@ -322,7 +322,7 @@ def run_solve(args) -> int:
                            forcing="eisenstat-walker" if args.inexact else "auto", memory_limit=args.memory_limit)
     with progress:
         progress.start(f"{pathlib.Path(args.file).name} ({loaded.poses} poses, {args.method} + {args.preconditioner})")
-        row = run_ours(loaded.graph, loaded.initial, params, loaded.arrays)
+        row = run_ours(loaded.graph, loaded.initial, params, loaded.arrays, release_arrays=True)
         progress.done(f"{row['iterations']} iterations, error {row['final_error']:.8g}")
     if args.output:
         _write_poses(args.output, out_format, loaded, row["values"], args)
