@@ -213,7 +213,7 @@ def solve(case: Case, solver: str, overrides: dict, datasets: pathlib.Path) -> d
             return {"not_installed": str(exc), "stack": stack_limit()}
     graph, initial, poses, dimension, arrays = load_case(case, datasets)
     if solver not in OURS:
-        arrays = None   # only our native linearizer reads the loader's arrays; ours drops them once it has
+        arrays = None   # only our native linearizer reads the loader's arrays (ours releases them once it is built)
     loaded, load_peak = _memory_mib()
     reset = _reset_peak()
     if solver in OURS:
