@@ -17,5 +17,5 @@ def test_release_arrays_empties_the_callers_dict_and_changes_no_number():
     assert set(kept) == set(p.arrays)            # the default leaves the caller's dict as it was
     assert released == {}                        # released: nothing held for the rest of the solve
     assert a["iterations"] == b["iterations"]
-    assert a["final_error"] == b["final_error"]
+    assert np.isclose(a["final_error"], b["final_error"], rtol=1e-12)   # (threads may sum in another order)
     assert np.isclose(b["final_error"], p.graph.error(b["values"]), rtol=1e-12)
