@@ -142,17 +142,25 @@ def stack_limit() -> dict:
 
 
 def load_case(case: Case, datasets: pathlib.Path):
-    """(graph, initial, poses, dimension, arrays) of a case; ``arrays``: the loader's parsed numbers."""
+    """(problem, poses, dimension) of a case: ``problem`` has ``graph``, ``initial`` and ``arrays``
+    (the loader's parsed numbers; ``{}`` where GTSAM must linearize); the survey problems build their
+    GTSAM objects on first use."""
     if case.file:
         from ..io import load_graph
         g = load_graph(datasets / case.file)
-        return g.graph, g.initial, g.poses, g.dimension, g.arrays
+        return g, g.poses, g.dimension
     from ..problems import lawnmower, square_loops, survey3d
     if case.grid:
         p = (lawnmower if len(case.grid) == 2 else survey3d)(*case.grid)
-        return p.graph, p.initial, p.poses, p.dimension, p.arrays
+        return p, p.poses, p.dimension
     p = square_loops(case.loops, case.points_per_side)
-    return p.graph, p.initial, p.poses, 2, p.arrays
+    return p, p.poses, 2
+
+
+def _from_arrays(solver: str, overrides: dict, arrays) -> bool:
+    """Whether our run ``solver`` linearizes from the loader's arrays alone (no GTSAM graph needed)."""
+    params = {**BASE_PARAMS, **overrides, **OURS.get(solver, {})}
+    return solver in OURS and bool(arrays) and params.get("linearization", "auto") != "gtsam"
 
 
 def _solve_ours(graph, initial, overrides: dict, arrays: dict | None = None) -> dict:
@@ -211,9 +219,17 @@ def solve(case: Case, solver: str, overrides: dict, datasets: pathlib.Path) -> d
             peers.import_g2o()
         except peers.PeerNotInstalled as exc:
             return {"not_installed": str(exc), "stack": stack_limit()}
-    graph, initial, poses, dimension, arrays = load_case(case, datasets)
-    if solver not in OURS:
-        arrays = None   # only our native linearizer reads the loader's arrays (ours releases them once it is built)
+    problem, poses, dimension = load_case(case, datasets)
+    arrays = problem.arrays
+    if _from_arrays(solver, overrides, arrays):
+        # the GTSAM graph is neither built (survey problems) nor held: our native linearizer reads the
+        # arrays; the start Values stay, as the optimizer's API takes them
+        graph, initial = None, problem.initial
+    else:
+        graph, initial = problem.graph, problem.initial
+        if solver not in OURS:
+            arrays = None   # only our native linearizer reads the loader's arrays (ours releases them once it is built)
+    del problem
     loaded, load_peak = _memory_mib()
     reset = _reset_peak()
     if solver in OURS:
@@ -224,6 +240,8 @@ def solve(case: Case, solver: str, overrides: dict, datasets: pathlib.Path) -> d
         r = _solve_gtsam(graph, initial, solver)
     solve_peak = _memory_mib()[1]
     values = r.pop("values")
+    if values is not None and graph is None:   # GTSAM's own evaluation of our result, after the peak was read
+        graph = load_case(case, datasets)[0].graph
     r["final_error"] = float(graph.error(values)) if values is not None else float("nan")
     return {**r, "poses": poses, "dimension": dimension, "loaded_mib": loaded,
             "peak_mib": max(load_peak, solve_peak), "solve_peak_mib": solve_peak, "peak_reset": reset,

@@ -15,7 +15,8 @@ The initial guess is dead reckoning (the noisy odometry composed from pose 0).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Callable
 
 import gtsam
 import numpy as np
@@ -23,9 +24,10 @@ import numpy as np
 
 @dataclass
 class Survey:
-    graph: gtsam.NonlinearFactorGraph
-    initial: gtsam.Values  # dead reckoning from the noisy odometry
-    ground_truth: gtsam.Values
+    """A survey problem: its numbers in ``arrays``, its GTSAM objects (``graph``, ``initial``,
+    ``ground_truth``) built from them on first use — a solve from the arrays never needs them
+    (1M 2D poses: ~0.6 GB of GTSAM factors and Values, ~35 s to build)."""
+
     floors: int
     rows: int
     cols: int
@@ -36,6 +38,26 @@ class Survey:
     floor_height: float = 1.0
     # the graph as numpy arrays (NativeLinearizer.from_arrays(**arrays)), as square_loops gives them
     arrays: dict | None = None
+    _make: dict[str, Callable] = field(default_factory=dict, repr=False, compare=False)  # name → builder
+    _made: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def _gtsam(self, name: str):
+        if name not in self._made:
+            self._made[name] = self._make.pop(name)()
+        return self._made[name]
+
+    @property
+    def graph(self) -> gtsam.NonlinearFactorGraph:
+        return self._gtsam("graph")
+
+    @property
+    def initial(self) -> gtsam.Values:
+        """Dead reckoning from the noisy odometry."""
+        return self._gtsam("initial")
+
+    @property
+    def ground_truth(self) -> gtsam.Values:
+        return self._gtsam("ground_truth")
 
     @property
     def poses(self) -> int:
@@ -130,29 +152,36 @@ def lawnmower(rows: int, cols: int, sigma: float = 0.01, seed: int = 0, spacing:
     loop_meas = _between2(truth[loops[:, 0]], truth[loops[:, 1]]) + ls * rng.standard_normal((len(loops), 3))
     dead = _dead_reckoning2(truth[0], odo_meas)
 
-    graph = gtsam.NonlinearFactorGraph()
-    graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*truth[0]),
-                                     gtsam.noiseModel.Isotropic.Precision(3, prior_information)))
-    odo_noise = gtsam.noiseModel.Isotropic.Precision(3, odometry_information)
-    loop_noise = gtsam.noiseModel.Isotropic.Precision(3, loop_information)
-    Between, Pose2 = gtsam.BetweenFactorPose2, gtsam.Pose2
-    for t, (dx, dy, dth) in enumerate(odo_meas.tolist()):
-        graph.add(Between(t, t + 1, Pose2(dx, dy, dth), odo_noise))
-    for (i, j), (dx, dy, dth) in zip(loops.tolist(), loop_meas.tolist()):
-        graph.add(Between(i, j, Pose2(dx, dy, dth), loop_noise))
-    initial, ground_truth = gtsam.Values(), gtsam.Values()
-    for t, (x, y, th) in enumerate(dead.tolist()):
-        initial.insert(t, Pose2(x, y, th))
-    for t, (x, y, th) in enumerate(truth.tolist()):
-        ground_truth.insert(t, Pose2(x, y, th))
     edges = np.r_[np.column_stack([np.arange(n - 1), np.arange(1, n)]), loops]
+    measurements = np.r_[odo_meas, loop_meas]
     information = np.r_[np.full(n - 1, odometry_information), np.full(len(loops), loop_information)]
     arrays = {"kind": "pose2", "keys": np.arange(n), "poses": dead, "edges": edges,
-              "measurements": np.r_[odo_meas, loop_meas], "information": information[:, None, None] * np.eye(3),
+              "measurements": measurements, "information": information[:, None, None] * np.eye(3),
               "prior_keys": np.array([0]), "prior_measurements": truth[:1],
               "prior_information": np.eye(3) * prior_information}
-    return Lawnmower(graph=graph, initial=initial, ground_truth=ground_truth, floors=1, rows=rows,
-                     cols=cols, sigma=sigma, seed=seed, closures=len(loops), spacing=spacing, arrays=arrays)
+
+    def make_graph() -> gtsam.NonlinearFactorGraph:
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*truth[0]),
+                                         gtsam.noiseModel.Isotropic.Precision(3, prior_information)))
+        Between, Pose2 = gtsam.BetweenFactorPose2, gtsam.Pose2
+        for weight, part in ((odometry_information, slice(0, n - 1)), (loop_information, slice(n - 1, None))):
+            noise = gtsam.noiseModel.Isotropic.Precision(3, weight)
+            for (i, j), (dx, dy, dth) in zip(edges[part].tolist(), measurements[part].tolist()):
+                graph.add(Between(i, j, Pose2(dx, dy, dth), noise))
+        return graph
+
+    return Lawnmower(floors=1, rows=rows, cols=cols, sigma=sigma, seed=seed, closures=len(loops),
+                     spacing=spacing, arrays=arrays, _make={"graph": make_graph, "initial": lambda: _values2(dead),
+                                                           "ground_truth": lambda: _values2(truth)})
+
+
+def _values2(poses: np.ndarray) -> gtsam.Values:
+    """gtsam Values of Pose2 rows (x, y, θ), keys 0..n−1."""
+    values = gtsam.Values()
+    for t, (x, y, th) in enumerate(poses.tolist()):
+        values.insert(t, gtsam.Pose2(x, y, th))
+    return values
 
 
 # -- Pose3 helpers on arrays: rotations (m, 3, 3), translations (m, 3) ---------------------------
@@ -236,31 +265,37 @@ def survey3d(floors: int, rows: int, cols: int, sigma: float = 0.01, seed: int =
     Rn, tn = _expmap3(ls * rng.standard_normal((len(loops), 6)))
     Rl, tl = Rl @ Rn, tl + np.einsum("mij,mj->mi", Rl, tn)
 
-    graph = gtsam.NonlinearFactorGraph()
-    graph.add(gtsam.PriorFactorPose3(0, _pose3(R[0], pos[0]),
-                                     gtsam.noiseModel.Isotropic.Precision(6, prior_information)))
-    odo_noise = gtsam.noiseModel.Isotropic.Precision(6, odometry_information)
-    loop_noise = gtsam.noiseModel.Isotropic.Precision(6, loop_information)
-    Between = gtsam.BetweenFactorPose3
-    odo_poses = [_pose3(a, b) for a, b in zip(Ro, to)]
-    for t, meas in enumerate(odo_poses):
-        graph.add(Between(t, t + 1, meas, odo_noise))
-    for (i, j), a, b in zip(loops.tolist(), Rl, tl):
-        graph.add(Between(i, j, _pose3(a, b), loop_noise))
-    initial, ground_truth = gtsam.Values(), gtsam.Values()
+    # the dead-reckoning start, composed by GTSAM (its Pose3 compose), read back for the arrays
+    initial = gtsam.Values()
     pose = _pose3(R[0], pos[0])
     initial.insert(0, pose)
-    for t, meas in enumerate(odo_poses):
-        pose = pose.compose(meas)
+    for t, (a, b) in enumerate(zip(Ro, to)):
+        pose = pose.compose(_pose3(a, b))
         initial.insert(t + 1, pose)
-    for t in range(n):
-        ground_truth.insert(t, _pose3(R[t], pos[t]))
     edges = np.r_[np.column_stack([np.arange(n - 1), np.arange(1, n)]), loops]
+    rotations, translations = np.r_[Ro, Rl], np.r_[to, tl]
     information = np.r_[np.full(n - 1, odometry_information), np.full(len(loops), loop_information)]
     arrays = {"kind": "pose3", "keys": np.arange(n), "poses": gtsam.utilities.extractPose3(initial),
-              "edges": edges, "measurements": (np.r_[Ro, Rl], np.r_[to, tl]),
+              "edges": edges, "measurements": (rotations, translations),
               "information": information[:, None, None] * np.eye(6), "prior_keys": np.array([0]),
               "prior_measurements": (R[:1], pos[:1]), "prior_information": np.eye(6) * prior_information}
-    return Survey3D(graph=graph, initial=initial, ground_truth=ground_truth, floors=floors, rows=rows,
-                    cols=cols, sigma=sigma, seed=seed, closures=len(loops), spacing=spacing,
-                    floor_height=floor_height, arrays=arrays)
+
+    def make_graph() -> gtsam.NonlinearFactorGraph:
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(gtsam.PriorFactorPose3(0, _pose3(R[0], pos[0]),
+                                         gtsam.noiseModel.Isotropic.Precision(6, prior_information)))
+        for weight, part in ((odometry_information, slice(0, n - 1)), (loop_information, slice(n - 1, None))):
+            noise = gtsam.noiseModel.Isotropic.Precision(6, weight)
+            for (i, j), a, b in zip(edges[part].tolist(), rotations[part], translations[part]):
+                graph.add(gtsam.BetweenFactorPose3(i, j, _pose3(a, b), noise))
+        return graph
+
+    def make_ground_truth() -> gtsam.Values:
+        ground_truth = gtsam.Values()
+        for t in range(n):
+            ground_truth.insert(t, _pose3(R[t], pos[t]))
+        return ground_truth
+
+    return Survey3D(floors=floors, rows=rows, cols=cols, sigma=sigma, seed=seed, closures=len(loops),
+                    spacing=spacing, floor_height=floor_height, arrays=arrays,
+                    _make={"graph": make_graph, "ground_truth": make_ground_truth}, _made={"initial": initial})

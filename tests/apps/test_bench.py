@@ -206,3 +206,37 @@ def test_repeat_interleaves_the_solvers_and_keeps_each_median_run(monkeypatch):
     bad = {"status": "crashed (SIGKILL)", "seconds": None}
     assert B.median_run([{"status": "ok", "seconds": 1.0}, bad])["status"] == "crashed (SIGKILL)"
     assert "seconds_runs" not in B.median_run([{"status": "ok", "seconds": 1.0}])
+
+
+def test_our_child_solves_without_the_gtsam_graph(monkeypatch):
+    """Our runs solve from the loader's arrays: no GTSAM graph is held (a survey's is not even built)
+    until GTSAM evaluates the result after the solve; GTSAM's runs get the graph."""
+    from gtsam_schwarz.apps import bench
+    from gtsam_schwarz.problems import survey as survey_module
+
+    seen, built = [], []
+    real_ours, real_gtsam, real_make = bench._solve_ours, bench._solve_gtsam, survey_module.Survey._gtsam
+
+    def ours(graph, initial, overrides, arrays=None):
+        seen.append(("ours", graph, bool(arrays), list(built)))
+        return real_ours(graph, initial, overrides, arrays)
+
+    def gtsam_run(graph, initial, name):
+        seen.append(("gtsam", graph is not None, None, list(built)))
+        return real_gtsam(graph, initial, name)
+
+    def make(self, name):
+        built.append(name)
+        return real_make(self, name)
+
+    monkeypatch.setattr(bench, "_solve_ours", ours)
+    monkeypatch.setattr(bench, "_solve_gtsam", gtsam_run)
+    monkeypatch.setattr(survey_module.Survey, "_gtsam", make)
+    case = bench.ALL_CASES["lawn100x100"]
+    mine = bench.solve(case, "ours-direct", {}, DATASETS)
+    assert seen[0] == ("ours", None, True, ["initial"])       # the start Values only, no graph
+    assert "graph" in built                                       # built after the solve, for the check
+    gtsam_lm = bench.solve(case, "gtsam-lm", {}, DATASETS)
+    assert seen[1][:2] == ("gtsam", True)
+    assert mine["final_error"] == pytest.approx(gtsam_lm["final_error"], rel=1e-6)
+    assert mine["peak_mib"] >= mine["solve_peak_mib"] > 0

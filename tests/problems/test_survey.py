@@ -123,3 +123,16 @@ def test_arrays_describe_the_same_graph():
         lin = NativeLinearizer.from_arrays(**prob.arrays)
         assert lin.error(lin.initial_state()) == pytest.approx(prob.graph.error(prob.initial), rel=1e-12)
         assert len(prob.arrays["edges"]) == prob.graph.size() - 1
+
+
+def test_gtsam_objects_are_built_on_first_use():
+    """A solve from ``arrays`` never needs GTSAM's objects: the 2D survey builds none of them until asked,
+    the 3D one only its start (read back for the arrays); both build each object once."""
+    p2, p3 = lawnmower(3, 4), survey3d(2, 2, 3)
+    assert p2._made == {} and set(p3._made) == {"initial"}
+    initial = p2.initial
+    assert set(p2._made) == {"initial"} and p2.initial is initial
+    graph = p2.graph
+    assert set(p2._made) == {"graph", "initial"} and p2.graph is graph
+    assert graph.size() == 1 + (12 - 1) + 2 * 3 and p2.initial.size() == p2.ground_truth.size() == 12
+    assert p3.graph.size() == len(p3.arrays["edges"]) + 1 and p3.ground_truth.size() == 12
