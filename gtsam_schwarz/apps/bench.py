@@ -201,9 +201,9 @@ def _solve_gtsam(graph, initial, name: str) -> dict:
     return {k: r[k] for k in ("iterations", "seconds", "values", "failed") if k in r}
 
 
-def _solve_peer(graph, initial, name: str) -> dict:
-    """g2o's GN or LM on the same graph (built from it, not timed); estimates back in gtsam Values."""
-    r = peers.solve_g2o(graph, initial, peers.PEER_SOLVERS[name])
+def _solve_peer(problem: peers.G2oProblem, name: str) -> dict:
+    """g2o's GN or LM on its graph (``problem``, built from GTSAM's, not timed); estimates back in gtsam Values."""
+    r = peers.solve_g2o(None, None, peers.PEER_SOLVERS[name], problem=problem)
     return {k: r[k] for k in ("iterations", "seconds", "values", "failed", "init_seconds", "g2o_chi2",
                               "g2o_initial_chi2", "converged", "stop_reason") if k in r}
 
@@ -220,11 +220,14 @@ def solve(case: Case, solver: str, overrides: dict, datasets: pathlib.Path) -> d
         except peers.PeerNotInstalled as exc:
             return {"not_installed": str(exc), "stack": stack_limit()}
     problem, poses, dimension = load_case(case, datasets)
-    arrays = problem.arrays
+    arrays, peer = problem.arrays, None
     if _from_arrays(solver, overrides, arrays):
         # the GTSAM graph is neither built (survey problems) nor held: our native linearizer reads the
         # arrays; the start Values stay, as the optimizer's API takes them
         graph, initial = None, problem.initial
+    elif solver in PEERS:   # g2o holds its own graph only, as when it reads a file itself
+        peer = peers.build_g2o(problem.graph, problem.initial, peers.PEER_SOLVERS[solver])
+        graph = initial = arrays = None
     else:
         graph, initial = problem.graph, problem.initial
         if solver not in OURS:
@@ -235,12 +238,13 @@ def solve(case: Case, solver: str, overrides: dict, datasets: pathlib.Path) -> d
     if solver in OURS:
         r = _solve_ours(graph, initial, {**overrides, **OURS[solver]}, arrays)
     elif solver in PEERS:
-        r = _solve_peer(graph, initial, solver)
+        r = _solve_peer(peer, solver)
+        del peer
     else:
         r = _solve_gtsam(graph, initial, solver)
     solve_peak = _memory_mib()[1]
     values = r.pop("values")
-    if values is not None and graph is None:   # GTSAM's own evaluation of our result, after the peak was read
+    if values is not None and graph is None:   # GTSAM's own evaluation of the result, after the peak was read
         graph = load_case(case, datasets)[0].graph
     r["final_error"] = float(graph.error(values)) if values is not None else float("nan")
     return {**r, "poses": poses, "dimension": dimension, "loaded_mib": loaded,
@@ -468,7 +472,12 @@ def _header(report: dict) -> list[str]:
             "relative/absolute error decrease 1e-5 or 100 iterations",
             *_peer_header(report),
             f"- every run in its own child process, timeout {report['timeout']:g} s; GTSAM's and g2o's children "
-            "under `ulimit -s unlimited`, ours with the default stack (column *stack*)", ""]
+            "under `ulimit -s unlimited`, ours with the default stack (column *stack*)",
+            "- what each child holds through the solve: GTSAM's the gtsam graph and start Values; g2o's its own "
+            "graph (built from them, which are then dropped); ours the start Values and the loader's arrays, "
+            "no gtsam graph (the native linearizer reads the arrays; where it cannot, the graph); the final "
+            "error is GTSAM's `graph.error`, evaluated after the peak is read (the graph built again where "
+            "it was not held)", ""]
 
 
 def _peer_header(report: dict) -> list[str]:
@@ -478,7 +487,8 @@ def _peer_header(report: dict) -> list[str]:
     version = report["machine"].get("g2opy")
     return [f"- g2o ({'g2opy ' + version if version else 'g2opy not installed'}): `SparseOptimizer`, "
             f"`BlockSolverSE2/SE3` + {peers.LINEAR_SOLVER}, Gauss–Newton (`g2o-gn`) or Levenberg–Marquardt "
-            "(`g2o-lm`), built from the same gtsam graph and initial values (not timed); the prior's pose "
+            "(`g2o-lm`), built from the same gtsam graph and initial values (not timed, before the peak "
+            "is reset); the prior's pose "
             "is a fixed vertex; Pose3 information converted to g2o's (t, q_vec) error, Ω_g2o = MᵀΩM; stops "
             f"on relative chi2 decrease < {peers.RELATIVE_TOL:g} (g2o's `SparseOptimizerTerminateAction`) "
             f"or {peers.MAX_ITERATIONS} iterations; timed: `initialize_optimization()` + `optimize()`; "

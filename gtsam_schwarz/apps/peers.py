@@ -260,12 +260,14 @@ def build_g2o(graph, initial, method: str = "gn", g2o=None) -> G2oProblem:
 
 
 def solve_g2o(graph, initial, method: str = "gn", max_iterations: int = MAX_ITERATIONS,
-              relative_tol: float = RELATIVE_TOL) -> dict:
-    """Build (not timed), then time ``initialize_optimization()`` + ``optimize()`` (the analogue of
-    constructing a GTSAM optimizer and calling optimize). The values come back in gtsam Values; the
-    caller evaluates ``graph.error`` on them. ``failed`` is set when g2o reports no iteration."""
+              relative_tol: float = RELATIVE_TOL, problem: G2oProblem | None = None) -> dict:
+    """Build (not timed; or take ``problem``, :func:`build_g2o`'s, and ignore graph and initial), then
+    time ``initialize_optimization()`` + ``optimize()`` (the analogue of constructing a GTSAM optimizer
+    and calling optimize). The values come back in gtsam Values; the caller evaluates ``graph.error``
+    on them. ``failed`` is set when g2o reports no iteration."""
     g2o = import_g2o()
-    problem = build_g2o(graph, initial, method, g2o)
+    if problem is None:
+        problem = build_g2o(graph, initial, method, g2o)
     opt = problem.optimizer
     t0 = time.perf_counter()
     ok = opt.initialize_optimization()

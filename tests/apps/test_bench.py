@@ -240,3 +240,23 @@ def test_our_child_solves_without_the_gtsam_graph(monkeypatch):
     assert seen[1][:2] == ("gtsam", True)
     assert mine["final_error"] == pytest.approx(gtsam_lm["final_error"], rel=1e-6)
     assert mine["peak_mib"] >= mine["solve_peak_mib"] > 0
+
+
+def test_g2o_child_solves_its_own_graph_only(monkeypatch):
+    """g2o's runs get g2o's graph (built from GTSAM's before the solve, not timed), not GTSAM's; GTSAM
+    evaluates the result after the solve."""
+    from gtsam_schwarz.apps import bench, peers
+
+    if not peers.available():
+        pytest.skip("g2opy is not installed (the [peers] extra)")
+    seen = []
+    real = bench._solve_peer
+
+    def peer(problem, name):
+        seen.append(type(problem).__name__)
+        return real(problem, name)
+
+    monkeypatch.setattr(bench, "_solve_peer", peer)
+    row = bench.solve(bench.ALL_CASES["M3500"], "g2o-gn", {}, DATASETS)
+    assert seen == ["G2oProblem"] and row["iterations"] >= 1
+    assert row["final_error"] == pytest.approx(68.9574, rel=1e-5)   # GTSAM LM's on M3500: 68.95743913
