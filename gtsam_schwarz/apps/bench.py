@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import peers
+from ..util.heap import trim_heap
 from .report import markdown_table
 
 # our optimizer: the automatic choice, and each of its two linear solvers forced (over any --param)
@@ -233,6 +234,7 @@ def solve(case: Case, solver: str, overrides: dict, datasets: pathlib.Path) -> d
         if solver not in OURS:
             arrays = None   # only our native linearizer reads the loader's arrays (ours releases them once it is built)
     del problem
+    trim_heap()   # the dropped objects' pages go back: the solve does not reuse them warm
     loaded, load_peak = _memory_mib()
     reset = _reset_peak()
     if solver in OURS:
@@ -475,7 +477,8 @@ def _header(report: dict) -> list[str]:
             "under `ulimit -s unlimited`, ours with the default stack (column *stack*)",
             "- what each child holds through the solve: GTSAM's the gtsam graph and start Values; g2o's its own "
             "graph (built from them, which are then dropped); ours the start Values and the loader's arrays, "
-            "no gtsam graph (the native linearizer reads the arrays; where it cannot, the graph); the final "
+            "no gtsam graph (the native linearizer reads the arrays; where it cannot, the graph); what a child "
+            "drops goes back to the kernel before the solve (`malloc_trim`), so no solver reuses it warm; the final "
             "error is GTSAM's `graph.error`, evaluated after the peak is read (the graph built again where "
             "it was not held)", ""]
 

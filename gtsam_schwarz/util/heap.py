@@ -71,6 +71,17 @@ def tune_allocator() -> bool:
     return ok
 
 
+def trim_heap() -> bool:
+    """Give the heap's free pages back to the kernel (glibc's ``malloc_trim``), so that what comes
+    next faults its memory afresh instead of reusing pages warm: a bench child that drops the objects
+    its solver does not use (a GTSAM graph g2o's was built from) then runs as if they had never been
+    there. Returns whether anything was released."""
+    try:
+        return bool(_libc().malloc_trim(0))
+    except (OSError, AttributeError):
+        return False
+
+
 def populate_ahead(nbytes: float) -> threading.Thread | None:
     """Fault in ``nbytes`` of fresh heap on a helper thread while this one works on.
 
