@@ -95,3 +95,23 @@ def test_the_block_is_populated_from_its_far_end_back():
     assert starts == sorted(starts, reverse=True)                     # far end first, then back
     assert all(a + s == prev for (a, s), prev in zip(calls[1:], starts[:-1]))   # no gap, no overlap
     assert sum(s for _, s in calls) >= (64 << 20) - 2 * 4096          # the whole block
+
+
+TRIM = r"""
+import json, numpy as np
+from gtsam_schwarz.util.heap import trim_heap, tune_allocator
+rss = lambda: int(open("/proc/self/statm").read().split()[1]) * 4096 >> 20
+tune_allocator()                       # freed blocks stay in the heap, never trimmed by themselves
+block = np.ones(256 << 17)             # 256 MiB, written
+del block
+kept = rss()
+released = trim_heap()
+print(json.dumps({"kept": kept, "after": rss(), "released": released}))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc_trim: Linux only")
+def test_trim_gives_the_tuned_heaps_free_pages_back():
+    out = subprocess.run([sys.executable, "-c", TRIM], capture_output=True, text=True, check=True)
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    assert r["released"] and r["kept"] - r["after"] >= 200   # MiB: the freed block's pages
