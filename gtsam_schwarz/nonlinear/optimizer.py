@@ -17,6 +17,7 @@ from ..dd.index_sets import vertex_dofs
 from ..util.blas import blas_limits
 from ..linearization.base import Linearizer, LinearSystem
 from ..util import with_small_pages
+from ..solvers.memory import available_memory
 from ..util.heap import populate_ahead
 from .gauge import free_components
 from .hooks import verbose_printer
@@ -59,8 +60,9 @@ class SchwarzOptimizer:
         nnz = getattr(linearizer, "nnz_estimate", None)
         if nnz is None and getattr(linearizer, "pattern", None) is not None:
             nnz = linearizer.pattern.nnz
-        if nnz is not None:
-            populate_ahead(FRESH_BYTES_PER_ENTRY * nnz)
+        if nnz is not None:   # at most a share of what the linear solver may use (its memory limit)
+            limit = available_memory(self.nonlinear_params.linear_solver.memory_limit)
+            populate_ahead(FRESH_BYTES_PER_ENTRY * nnz, ceiling=limit)
         method = self.nonlinear_params.initialization
         # the chordal start's solver choice is analysed on the side thread while the start is read
         prepared = prepare_chordal(linearizer, self._chordal_solver()) if method != "file" and self.chordal_ahead else None

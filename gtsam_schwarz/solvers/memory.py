@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import os
 
+from ..util.heap import free_memory
+
 GIB = float(2**30)
 ENV = "GTSAM_SCHWARZ_MEMORY_LIMIT"
 FACTOR_BYTES = 8 * 1.5 + 1.0  # per predicted entry of a CHOLMOD supernodal factor (padding, row indices)
@@ -34,15 +36,6 @@ def parse_bytes(text: str | float | int) -> float:
         raise ValueError(f"{ENV}: cannot read {text!r} as a size (e.g. 512M, 2.5G)") from None
 
 
-def _read_int(path: str) -> float | None:
-    try:
-        with open(path) as f:
-            text = f.read().strip()
-        return None if text == "max" else float(text)
-    except (OSError, ValueError):
-        return None
-
-
 def available_memory(limit: float | str | None = None) -> float:
     """Bytes the solver may still allocate: ``limit`` if given, else $GTSAM_SCHWARZ_MEMORY_LIMIT,
     else MemAvailable (capped by the cgroup's memory.max − memory.current)."""
@@ -50,19 +43,7 @@ def available_memory(limit: float | str | None = None) -> float:
         return parse_bytes(limit)
     if os.environ.get(ENV):
         return parse_bytes(os.environ[ENV])
-    avail = float("inf")
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    avail = float(line.split()[1]) * 1024
-                    break
-    except OSError:
-        pass
-    cap, used = _read_int("/sys/fs/cgroup/memory.max"), _read_int("/sys/fs/cgroup/memory.current")
-    if cap is not None and used is not None:
-        avail = min(avail, cap - used)
-    return avail
+    return free_memory()
 
 
 def gib(nbytes: float) -> str:

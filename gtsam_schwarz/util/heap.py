@@ -25,6 +25,9 @@ _PAGE = 4096
 # side thread, 22-29 ms against 4 ms); lawnmower 600x600 ran 13.6 / 13.0 / 15.0 s against 11.3 / 12.6 /
 # 13.6 s with 4 MiB steps (interleaved, in-process)
 _STEP = 4 << 20
+# the most a prefault takes of the memory available (MemAvailable, the cgroup's room, or the caller's
+# ceiling): it faults in memory the run is expected to use, never memory a short machine lacks
+POPULATE_SHARE = 0.5
 _state: dict = {"tuned": False, "populating": None}
 
 
@@ -71,6 +74,33 @@ def tune_allocator() -> bool:
     return ok
 
 
+def _read_number(path: str) -> float | None:
+    try:
+        with open(path) as f:
+            text = f.read().strip()
+        return None if text == "max" else float(text)
+    except (OSError, ValueError):
+        return None
+
+
+def free_memory() -> float:
+    """Bytes this process could still take: ``MemAvailable``, capped by the cgroup's ``memory.max``
+    less its ``memory.current`` when one is set (inf where neither can be read)."""
+    avail = float("inf")
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    avail = float(line.split()[1]) * 1024
+                    break
+    except OSError:
+        pass
+    cap, used = _read_number("/sys/fs/cgroup/memory.max"), _read_number("/sys/fs/cgroup/memory.current")
+    if cap is not None and used is not None:
+        avail = min(avail, cap - used)
+    return avail
+
+
 def trim_heap() -> bool:
     """Give the heap's free pages back to the kernel (glibc's ``malloc_trim``), so that what comes
     next faults its memory afresh instead of reusing pages warm: a bench child that drops the objects
@@ -82,7 +112,7 @@ def trim_heap() -> bool:
         return False
 
 
-def populate_ahead(nbytes: float) -> threading.Thread | None:
+def populate_ahead(nbytes: float, ceiling: float | None = None) -> threading.Thread | None:
     """Fault in ``nbytes`` of fresh heap on a helper thread while this one works on.
 
     A fresh page costs its first writer a fault: 2-15 µs here (a virtual machine's host backs it
@@ -96,8 +126,11 @@ def populate_ahead(nbytes: float) -> threading.Thread | None:
     made while an earlier one still runs takes its block now and waits for that thread (one helper
     at a time: the main thread keeps the other core). Returns the thread; None (nothing done)
     unless :func:`tune_allocator` applied, for less than 16 MiB, or with GTSAM_SCHWARZ_POPULATE=0.
-    On kernels before 5.14 the thread's first madvise fails and it stops."""
-    nbytes = int(nbytes) // _PAGE * _PAGE
+    On kernels before 5.14 the thread's first madvise fails and it stops. At most ``POPULATE_SHARE``
+    of ``ceiling`` (the caller's memory limit; default :func:`free_memory`) is faulted in: the
+    request is an estimate, and a machine short of memory must not lose it to a guess."""
+    room = free_memory() if ceiling is None else min(float(ceiling), free_memory())
+    nbytes = int(min(float(nbytes), POPULATE_SHARE * max(room, 0.0))) // _PAGE * _PAGE
     earlier = _state["populating"]
     if not _state["tuned"] or nbytes < (16 << 20) or os.environ.get("GTSAM_SCHWARZ_POPULATE", "1") == "0":
         return None

@@ -101,6 +101,21 @@ def test_optimizer_refuses_with_the_error(survey):
         gs.SchwarzOptimizer(prob.graph, prob.initial, params).optimize()
 
 
+def test_the_optimizers_prefault_stays_under_its_memory_limit(survey, monkeypatch):
+    """The heap the optimizer faults in ahead (64 bytes per entry of H) is bounded by the linear
+    solver's memory limit: the limit goes to populate_ahead as its ceiling."""
+    import gtsam_schwarz.nonlinear.optimizer as opt
+    from gtsam_schwarz.linearization.native import NativeLinearizer
+    asked = []
+    monkeypatch.setattr(opt, "populate_ahead", lambda nbytes, ceiling=None: asked.append((nbytes, ceiling)))
+    prob = survey[0]
+    params = gs.SchwarzParams(method="lm", preconditioner="rgdsw-linear", memory_limit="3M", initialization="file")
+    lin = NativeLinearizer(prob.graph, prob.initial)
+    gs.SchwarzOptimizer(prob.graph, prob.initial, params, linearizer=lin)
+    assert asked == [(opt.FRESH_BYTES_PER_ENTRY * lin.pattern.nnz, 3 * 2**20)]
+    assert asked[0][0] > 3 * 2**20   # the request exceeds the limit: populate_ahead caps it
+
+
 def test_auto_does_not_take_direct_when_its_factor_does_not_fit(survey, monkeypatch):
     """Where direct's predicted factor exceeds the limit, auto takes its Schwarz candidate if that
     fits, and refuses with one line naming both if neither does."""

@@ -115,3 +115,53 @@ def test_trim_gives_the_tuned_heaps_free_pages_back():
     out = subprocess.run([sys.executable, "-c", TRIM], capture_output=True, text=True, check=True)
     r = json.loads(out.stdout.strip().splitlines()[-1])
     assert r["released"] and r["kept"] - r["after"] >= 200   # MiB: the freed block's pages
+
+
+CAP_PROBE = r"""
+import json, sys
+from gtsam_schwarz.util import heap
+heap.tune_allocator()
+real = heap._libc()
+calls = []
+class Recording:   # the real allocator; madvise recorded, then done
+    malloc, free = real.malloc, real.free
+    def madvise(self, addr, size, advice):
+        calls.append(int(size))
+        return real.madvise(addr, size, advice)
+heap._libc = lambda: Recording()
+if sys.argv[1] == "free":   # a machine with 100 MiB available
+    heap.free_memory = lambda: float(100 << 20)
+    thread = heap.populate_ahead(1 << 30)
+else:                       # the caller's limit: 64 MiB
+    thread = heap.populate_ahead(1 << 30, ceiling=64 << 20)
+if thread is not None:
+    thread.join()
+print(json.dumps({"started": thread is not None, "bytes": sum(calls), "calls": len(calls)}))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator and madvise: Linux only")
+@pytest.mark.parametrize("bound, mib", [("free", 50), ("ceiling", 32)])
+def test_the_prefault_takes_at_most_its_share_of_the_memory_there_is(bound, mib):
+    """A 1 GiB request on a machine with 100 MiB available, or under a 64 MiB limit, faults in
+    POPULATE_SHARE (half) of that room, not the request: an estimate must not take memory the run lacks."""
+    from gtsam_schwarz.util.heap import POPULATE_SHARE
+    assert POPULATE_SHARE == 0.5
+    out = subprocess.run([sys.executable, "-c", CAP_PROBE, bound], capture_output=True, text=True, check=True)
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    if not r["started"]:
+        pytest.skip("allocator not tunable here")
+    if r["calls"] == 1 and r["bytes"] < (mib << 20) - 8192:
+        pytest.skip("kernel without MADV_POPULATE_WRITE (the first call failed)")
+    assert (mib << 20) - 2 * 4096 <= r["bytes"] <= mib << 20
+
+
+def test_free_memory_reads_the_machine(monkeypatch):
+    """MemAvailable (or a cgroup's room): positive and finite on Linux; solvers.memory's default limit."""
+    from gtsam_schwarz.solvers import memory
+    from gtsam_schwarz.util.heap import free_memory
+    monkeypatch.delenv(memory.ENV, raising=False)
+    avail = free_memory()
+    if sys.platform.startswith("linux"):
+        assert 0 < avail < float("inf")
+    assert abs(memory.available_memory() - avail) <= max(0.05 * avail, 64 << 20)
