@@ -61,7 +61,7 @@ def test_nothing_populated_without_the_tuned_allocator():
     assert r["later_faults"] > 40000   # numpy's 192 MiB mapped afresh: every page faulted
 
 
-ORDER_PROBE = r"""
+RECORDING = r"""
 import json, sys
 from gtsam_schwarz.util import heap
 heap.tune_allocator()
@@ -73,6 +73,9 @@ class Recording:   # the real allocator; madvise recorded, then done
         calls.append((int(addr), int(size)))
         return real.madvise(addr, size, advice)
 heap._libc = lambda: Recording()
+"""
+
+ORDER_PROBE = RECORDING + r"""
 thread = heap.populate_ahead(64 << 20)
 if thread is not None:
     thread.join()
@@ -117,18 +120,7 @@ def test_trim_gives_the_tuned_heaps_free_pages_back():
     assert r["released"] and r["kept"] - r["after"] >= 200   # MiB: the freed block's pages
 
 
-CAP_PROBE = r"""
-import json, sys
-from gtsam_schwarz.util import heap
-heap.tune_allocator()
-real = heap._libc()
-calls = []
-class Recording:   # the real allocator; madvise recorded, then done
-    malloc, free = real.malloc, real.free
-    def madvise(self, addr, size, advice):
-        calls.append(int(size))
-        return real.madvise(addr, size, advice)
-heap._libc = lambda: Recording()
+CAP_PROBE = RECORDING + r"""
 if sys.argv[1] == "free":   # a machine with 100 MiB available
     heap.free_memory = lambda: float(100 << 20)
     thread = heap.populate_ahead(1 << 30)
@@ -136,7 +128,7 @@ else:                       # the caller's limit: 64 MiB
     thread = heap.populate_ahead(1 << 30, ceiling=64 << 20)
 if thread is not None:
     thread.join()
-print(json.dumps({"started": thread is not None, "bytes": sum(calls), "calls": len(calls)}))
+print(json.dumps({"started": thread is not None, "bytes": sum(size for _, size in calls), "calls": len(calls)}))
 """
 
 
