@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import peers
-from ..util.heap import trim_heap
+from ..util.heap import HeapPeak, trim_heap
 from .report import markdown_table
 
 # our optimizer: the automatic choice, and each of its two linear solvers forced (over any --param)
@@ -213,7 +213,8 @@ def solve(case: Case, solver: str, overrides: dict, datasets: pathlib.Path) -> d
     """Load (not timed), then time the optimizer's construction + optimize(); memory and stack figures.
 
     ``peak_mib`` is the whole child's peak RSS; ``solve_peak_mib`` the peak since loading ended
-    (the same figure where the peak cannot be reset). A peer (g2o) that cannot be imported gives
+    (the same figure where the peak cannot be reset); ``live_peak_mib`` the most heap in use during the
+    solve (glibc's count, sampled every 50 ms; None elsewhere). A peer (g2o) that cannot be imported gives
     ``{"not_installed": why}`` before anything is loaded."""
     if solver in PEERS:
         try:
@@ -237,13 +238,14 @@ def solve(case: Case, solver: str, overrides: dict, datasets: pathlib.Path) -> d
     trim_heap()   # the dropped objects' pages go back: the solve does not reuse them warm
     loaded, load_peak = _memory_mib()
     reset = _reset_peak()
-    if solver in OURS:
-        r = _solve_ours(graph, initial, {**overrides, **OURS[solver]}, arrays)
-    elif solver in PEERS:
-        r = _solve_peer(peer, solver)
-        del peer
-    else:
-        r = _solve_gtsam(graph, initial, solver)
+    with HeapPeak() as live:
+        if solver in OURS:
+            r = _solve_ours(graph, initial, {**overrides, **OURS[solver]}, arrays)
+        elif solver in PEERS:
+            r = _solve_peer(peer, solver)
+            del peer
+        else:
+            r = _solve_gtsam(graph, initial, solver)
     solve_peak = _memory_mib()[1]
     values = r.pop("values")
     if values is not None and graph is None:   # GTSAM's own evaluation of the result, after the peak was read
@@ -251,6 +253,7 @@ def solve(case: Case, solver: str, overrides: dict, datasets: pathlib.Path) -> d
     r["final_error"] = float(graph.error(values)) if values is not None else float("nan")
     return {**r, "poses": poses, "dimension": dimension, "loaded_mib": loaded,
             "peak_mib": max(load_peak, solve_peak), "solve_peak_mib": solve_peak, "peak_reset": reset,
+            "live_peak_mib": live.mib,
             "stack": stack_limit()}
 
 
@@ -396,6 +399,7 @@ def direct_vs_schwarz(rows: list[dict]) -> list[dict]:
         out.append({"case": case, "direct_seconds": direct.get("seconds"), "schwarz_seconds": schwarz.get("seconds"),
                     "auto_seconds": auto.get("seconds") if auto else None, "schwarz_over_direct": seconds,
                     "peak_schwarz_over_direct": _ratio(schwarz.get("peak_mib"), direct.get("peak_mib")),
+                    "live_schwarz_over_direct": _ratio(schwarz.get("live_peak_mib"), direct.get("live_peak_mib")),
                     "delta_schwarz_over_direct": _ratio(_delta(schwarz), _delta(direct)),
                     "schwarz_cg_mean": schwarz.get("cg_mean"), "schwarz_subdomains": schwarz.get("subdomains"),
                     "schwarz_coarse_size": schwarz.get("coarse_size"), "faster": faster, "auto_chose": chose,
@@ -435,7 +439,8 @@ def _main_row(r: dict, poses) -> list[str]:
     return [r["case"], str(poses) if poses is not None else "?", r["solver"], r["status"],
             _f(r.get("final_error"), ".10g"), _same(r), str(r.get("iterations", "–")),
             _f(r.get("seconds"), ".3f"), _f(r.get("ratio_to_gtsam_lm"), ".2f"), _f(r.get("over_ours"), ".2f"),
-            _f(r.get("peak_mib"), ".0f"), _f(delta, ".0f"), r.get("stack", {}).get("text", "–")]
+            _f(r.get("peak_mib"), ".0f"), _f(r.get("live_peak_mib"), ".0f"), _f(delta, ".0f"),
+            r.get("stack", {}).get("text", "–")]
 
 
 def _count(v) -> str:
@@ -502,7 +507,9 @@ LEGEND = ("*rel. diff vs LM*: |e − e_LM| / e_LM of the final error, ✓ when �
           "construction + optimize(), problem loading (and building g2o's graph) excluded; *÷ GTSAM LM*: seconds / "
           "GTSAM LM's seconds (for ours: the key figure ours / GTSAM-LM); *÷ ours*: that solver's seconds / ours "
           "(ours-direct, ours-schwarz, GTSAM's iterative solvers and g2o; above 1: ours is faster); *peak MiB*: "
-          "the child's peak RSS; *Δ MiB*: the peak RSS during the solve minus the RSS right after loading the "
+          "the child's peak RSS; *live MiB*: the most heap in use during the solve (glibc's `mallinfo2`, sampled "
+          "every 50 ms: the peak RSS less the heap's free pieces, pages faulted in ahead and what lies outside the "
+          "heap); *Δ MiB*: the peak RSS during the solve minus the RSS right after loading the "
           "problem (the solver's own memory); *stack*: the "
           "child's stack limit.")
 
@@ -511,7 +518,7 @@ def markdown(report: dict) -> str:
     """The header, the main table (one group of rows per case) and our time split."""
     rows, poses = report["runs"], {c["name"]: c["poses"] for c in report["cases"]}
     head = ["case", "poses", "solver", "status", "final error", "rel. diff vs LM", "its",
-            "seconds", "÷ GTSAM LM", "÷ ours", "peak MiB", "Δ MiB", "stack"]
+            "seconds", "÷ GTSAM LM", "÷ ours", "peak MiB", "live MiB", "Δ MiB", "stack"]
     out = _header(report) + _table(head, [_main_row(r, poses[r["case"]]) for r in rows]) + ["", LEGEND]
     repeated = [r for r in rows if r.get("seconds_runs")]
     if repeated:
@@ -528,7 +535,7 @@ def markdown(report: dict) -> str:
                        for r in ours if r["solver"] == "ours" and r.get("linear_solver", {}).get("reason")]
     pairs = report.get("direct_vs_schwarz") or direct_vs_schwarz(rows)
     if pairs:
-        head = ["case", "direct s", "schwarz s", "schwarz ÷ direct", "peak ÷", "Δ ÷", "CG / solve",
+        head = ["case", "direct s", "schwarz s", "schwarz ÷ direct", "peak ÷", "live ÷", "Δ ÷", "CG / solve",
                 "subdomains", "coarse", "auto chose", "auto s", "auto picked the faster"]
         out += ["", f"## Direct vs Schwarz (ours-direct vs ours-schwarz = {OURS['ours-schwarz']['preconditioner']})",
                 ""] + _table(head, [_pair_row(p) for p in pairs])
@@ -536,8 +543,9 @@ def markdown(report: dict) -> str:
     return "\n".join(out) + "\n"
 
 
-PAIR_LEGEND = ("*schwarz ÷ direct*: ours-schwarz's seconds / ours-direct's (below 1: Schwarz is faster); *peak ÷* "
-               "and *Δ ÷*: the same for the child's peak RSS and for the solver's own memory (Δ MiB above); "
+PAIR_LEGEND = ("*schwarz ÷ direct*: ours-schwarz's seconds / ours-direct's (below 1: Schwarz is faster); *peak ÷*, "
+               "*live ÷* and *Δ ÷*: the same for the child's peak RSS, for the most heap in use and for the solver's "
+               "own memory (live MiB and Δ MiB above); "
                "*auto chose*: the linear solver our "
                "default (`ours`, preconditioner auto) picked, its reason in the bullets above; *auto picked the "
                "faster*: whether that is the faster of direct and Schwarz in this run.")
@@ -548,7 +556,7 @@ def _pair_row(p: dict) -> list[str]:
     direct = "does not fit" if p.get("direct_seconds") is None else _f(p.get("direct_seconds"), ".3f")
     return [p["case"], direct, _f(p.get("schwarz_seconds"), ".3f"),
             _f(p.get("schwarz_over_direct"), ".2f"), _f(p.get("peak_schwarz_over_direct"), ".2f"),
-            _f(p.get("delta_schwarz_over_direct"), ".2f"), _f(p.get("schwarz_cg_mean"), ".1f"),
+            _f(p.get("live_schwarz_over_direct"), ".2f"), _f(p.get("delta_schwarz_over_direct"), ".2f"), _f(p.get("schwarz_cg_mean"), ".1f"),
             _count(p.get("schwarz_subdomains")), _count(p.get("schwarz_coarse_size")),
             p.get("auto_chose") or "–", _f(p.get("auto_seconds"), ".3f"), yes_no]
 

@@ -31,6 +31,11 @@ POPULATE_SHARE = 0.5
 _state: dict = {"tuned": False, "populating": None}
 
 
+class _Mallinfo2(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_size_t) for name in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                       "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+
 @functools.lru_cache(maxsize=1)
 def _libc():
     libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
@@ -38,6 +43,8 @@ def _libc():
     libc.free.argtypes = [ctypes.c_void_p]
     libc.madvise.argtypes, libc.madvise.restype = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int], ctypes.c_int
     libc.mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+    if hasattr(libc, "mallinfo2"):   # glibc 2.33 and later
+        libc.mallinfo2.restype = _Mallinfo2
     return libc
 
 
@@ -153,3 +160,56 @@ def populate_ahead(nbytes: float, ceiling: float | None = None) -> threading.Thr
     thread.start()
     _state["populating"] = thread
     return thread
+
+
+def heap_in_use() -> float | None:
+    """Bytes the process's heap holds in use (glibc's ``mallinfo2``: allocated chunks and mapped
+    blocks; the free pieces between them and the pages outside the heap not counted), or None where
+    glibc does not give it."""
+    try:
+        libc = _libc()
+        if not hasattr(libc, "mallinfo2"):
+            return None
+        m = libc.mallinfo2()
+    except OSError:
+        return None
+    return float(m.uordblks + m.hblkhd)
+
+
+class HeapPeak:
+    """``with HeapPeak() as live: …``; then ``live.mib``: the most heap in use (:func:`heap_in_use`)
+    while the block ran, sampled on a helper thread every ``interval`` seconds and at both ends
+    (None where unavailable). Beside the peak RSS it tells memory a run used from its heap's free
+    pieces and from pages faulted in ahead (docs/survey.md, thirty-ninth pass)."""
+
+    def __init__(self, interval: float = 0.05):
+        self.interval = interval
+        self.peak: float | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def _sample(self) -> None:
+        used = heap_in_use()
+        if used is not None and (self.peak is None or used > self.peak):
+            self.peak = used
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval):
+            self._sample()
+
+    def __enter__(self) -> "HeapPeak":
+        self._sample()
+        if self.peak is not None:
+            self._thread = threading.Thread(target=self._run, name="heap-peak", daemon=True)
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        self._sample()
+
+    @property
+    def mib(self) -> float | None:
+        return None if self.peak is None else self.peak / 2**20

@@ -134,7 +134,8 @@ def test_bench_survey_case_runs_ours_direct_and_schwarz(grid, dimension):
 
 def _row(solver, seconds, used=None, peak=200.0):
     r = {"case": "c", "solver": solver, "status": "ok", "seconds": seconds, "peak_mib": peak,
-         "solve_peak_mib": peak, "loaded_mib": 100.0, "cg_mean": 0.0 if used == "direct" else 30.0,
+         "solve_peak_mib": peak, "live_peak_mib": peak - 40.0, "loaded_mib": 100.0,
+         "cg_mean": 0.0 if used == "direct" else 30.0,
          "subdomains": 4, "coarse_size": 70}
     if used:
         r["linear_solver"] = {"used": used}
@@ -151,6 +152,7 @@ def test_direct_vs_schwarz_ratios_and_auto_verdict(direct_s, schwarz_s, chose, f
     assert pair["schwarz_over_direct"] == pytest.approx(schwarz_s / direct_s)
     assert pair["peak_schwarz_over_direct"] == pytest.approx(0.5)
     assert pair["delta_schwarz_over_direct"] == pytest.approx(50 / 200)
+    assert pair["live_schwarz_over_direct"] == pytest.approx(110 / 260)
     assert pair["faster"] == faster and pair["auto_chose"] == chose and pair["auto_picked_faster"] is right
     text = bench.markdown({"runs": rows, "cases": [{"name": "c", "poses": 10}], "size": "tiny", "command": "x",
                            "date": "d", "machine": {"cpu_count": 2, "cpu": "c", "memory_gib": 1, "platform": "p",
@@ -158,7 +160,7 @@ def test_direct_vs_schwarz_ratios_and_auto_verdict(direct_s, schwarz_s, chose, f
                                                     "gtsam_schwarz": "0"},
                            "params": {}, "timeout": 1.0, "solvers": ["ours"], "direct_vs_schwarz": [pair]})
     assert "## Direct vs Schwarz" in text
-    assert f"| c | {direct_s:.3f} | {schwarz_s:.3f} | {schwarz_s / direct_s:.2f} | 0.50 | 0.25 |" in text
+    assert f"| c | {direct_s:.3f} | {schwarz_s:.3f} | {schwarz_s / direct_s:.2f} | 0.50 | 0.42 | 0.25 |" in text
 
 
 def test_direct_vs_schwarz_skips_a_case_without_both_rows():

@@ -157,3 +157,22 @@ def test_free_memory_reads_the_machine(monkeypatch):
     if sys.platform.startswith("linux"):
         assert 0 < avail < float("inf")
     assert abs(memory.available_memory() - avail) <= max(0.05 * avail, 64 << 20)
+
+
+def test_heap_peak_sees_what_the_block_held_and_freed():
+    """A 64 MiB array made and freed inside the block counts in the peak of the heap in use (its
+    sampler's last sample, at the end, no longer sees it); the sampler thread is gone after the block."""
+    import threading
+    import time
+    import numpy as np
+    from gtsam_schwarz.util.heap import HeapPeak, heap_in_use
+    before = heap_in_use()
+    if before is None:
+        pytest.skip("glibc's mallinfo2 not available here")
+    with HeapPeak(interval=0.01) as live:
+        a = np.ones(8 << 20)   # 64 MiB, written
+        time.sleep(0.1)
+        del a
+    assert live.mib is not None and live.mib >= before / 2**20 + 60
+    assert heap_in_use() < before + (16 << 20)   # freed again
+    assert not any(t.name == "heap-peak" for t in threading.enumerate())
