@@ -556,7 +556,8 @@ def _pair_row(p: dict) -> list[str]:
     direct = "does not fit" if p.get("direct_seconds") is None else _f(p.get("direct_seconds"), ".3f")
     return [p["case"], direct, _f(p.get("schwarz_seconds"), ".3f"),
             _f(p.get("schwarz_over_direct"), ".2f"), _f(p.get("peak_schwarz_over_direct"), ".2f"),
-            _f(p.get("live_schwarz_over_direct"), ".2f"), _f(p.get("delta_schwarz_over_direct"), ".2f"), _f(p.get("schwarz_cg_mean"), ".1f"),
+            _f(p.get("live_schwarz_over_direct"), ".2f"), _f(p.get("delta_schwarz_over_direct"), ".2f"),
+            _f(p.get("schwarz_cg_mean"), ".1f"),
             _count(p.get("schwarz_subdomains")), _count(p.get("schwarz_coarse_size")),
             p.get("auto_chose") or "–", _f(p.get("auto_seconds"), ".3f"), yes_no]
 

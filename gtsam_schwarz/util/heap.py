@@ -136,10 +136,12 @@ def populate_ahead(nbytes: float, ceiling: float | None = None) -> threading.Thr
     On kernels before 5.14 the thread's first madvise fails and it stops. At most ``POPULATE_SHARE``
     of ``ceiling`` (the caller's memory limit; default :func:`free_memory`) is faulted in: the
     request is an estimate, and a machine short of memory must not lose it to a guess."""
+    if not _state["tuned"] or os.environ.get("GTSAM_SCHWARZ_POPULATE", "1") == "0":
+        return None
     room = free_memory() if ceiling is None else min(float(ceiling), free_memory())
     nbytes = int(min(float(nbytes), POPULATE_SHARE * max(room, 0.0))) // _PAGE * _PAGE
     earlier = _state["populating"]
-    if not _state["tuned"] or nbytes < (16 << 20) or os.environ.get("GTSAM_SCHWARZ_POPULATE", "1") == "0":
+    if nbytes < (16 << 20):
         return None
     libc = _libc()
     start = libc.malloc(nbytes)
