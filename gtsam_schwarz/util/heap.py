@@ -16,7 +16,7 @@ import threading
 
 # glibc mallopt parameters (malloc.h)
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -2, -3, -4, -8
-_MMAP_THRESHOLD_MAX = 32 * 1024 * 1024  # glibc's largest allowed value on 64-bit
+_MMAP_THRESHOLD_MAX = 32 * 1024 * 1024  # mallopt(3)'s documented largest value on 64-bit (glibc 2.36 accepts more)
 _MADV_POPULATE_WRITE = 23  # Linux 5.14
 _PAGE = 4096
 # bytes per madvise call: each holds the process's memory-map lock, which every thread start (its
