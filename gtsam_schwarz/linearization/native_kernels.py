@@ -1000,7 +1000,7 @@ class BlockPattern:
                                bptr.astype(self.index_dtype)), shape=(n, n), blocksize=(d, d)).tocsr()
             if int(C.indptr[-1]) != self.nnz:
                 raise RuntimeError("unexpected BSR→CSR conversion")
-            self._indptr64 = C.indptr.astype(np.int64)
+            self._indptr_wide = None   # made when asked (the others' entries): 1M 2D poses, 23 MiB not held
             self.indptr = C.indptr.astype(self.index_dtype, copy=False)
             self.indices = C.indices.astype(self.index_dtype, copy=False)
             self._bptr, self._rowlen = bptr, rowlen
@@ -1014,7 +1014,7 @@ class BlockPattern:
             np.cumsum(np.repeat(rowlen, dims), out=indptr[1:])
             self.nnz = int(indptr[-1])
             self.index_dtype = np.int32 if max(n, self.nnz) < 2**31 - 1 else np.int64
-            self._indptr64 = indptr
+            self._indptr_wide = indptr
             indices = np.empty(self.nnz, dtype=self.index_dtype)
             for dr, dc in ((dr, dc) for dr in dvals for dc in dvals):
                 sel = np.flatnonzero((dims[br] == dr) & (dims[bc] == dc))
@@ -1025,6 +1025,11 @@ class BlockPattern:
             self.indices = indices
         for arr in (self.indptr, self.indices):
             arr.flags.writeable = False
+
+    @property
+    def _indptr64(self) -> np.ndarray:
+        """indptr in 64 bits: kept for mixed block sizes, whose layout reads it; made when asked otherwise."""
+        return self._indptr_wide if self._indptr_wide is not None else self.indptr.astype(np.int64)
 
     @property
     def block_keys(self) -> np.ndarray:

@@ -57,3 +57,22 @@ def test_source_index_is_the_entrywise_assignment(monkeypatch, dims, all_blocks,
     for dtype in (np.int32, np.int64):
         src = P.source_index(assignments, fill=size, dtype=dtype)
         assert src.dtype == dtype and np.array_equal(src, ref)
+
+
+@pytest.mark.parametrize("dims", [[3] * 30, [3, 6] * 10])
+def test_the_wide_row_pointers_are_held_only_for_mixed_block_sizes(dims):
+    """indptr in 64 bits: kept where the mixed layout reads it, made when asked for uniform blocks (one
+    n-long array less beside a solve), the same numbers either way."""
+    dims = np.asarray(dims)
+    nv = len(dims)
+    u, v = np.arange(nv - 1), np.arange(1, nv)
+    P = BlockPattern(dims, np.r_[u, np.arange(nv)], np.r_[v, np.arange(nv)])
+    assert (P._indptr_wide is None) == P.uniform
+    assert P._indptr64.dtype == np.int64
+    np.testing.assert_array_equal(P._indptr64, P.indptr)
+    r = P.offsets[u]
+    c = P.offsets[v]
+    pos = P.entry_positions(r, c)
+    rows = np.repeat(np.arange(P.n), np.diff(P.indptr))
+    np.testing.assert_array_equal(rows[pos], r)
+    np.testing.assert_array_equal(P.indices[pos], c)
