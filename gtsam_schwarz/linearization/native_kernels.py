@@ -1113,11 +1113,12 @@ class BlockPattern:
         """Positions of dof entries (r, c) in the CSR data (they must be in the pattern)."""
         r = np.asarray(r, dtype=np.int64)
         c = np.asarray(c, dtype=np.int64)
-        lo = self._indptr64[r]
-        hi = self._indptr64[r + 1]
+        indptr = self._indptr64   # (made once here where it is not held)
+        lo = indptr[r]
+        hi = indptr[r + 1]
         # row-major key of every stored entry is increasing: search it
         if not hasattr(self, "_entry_keys"):
-            rows_of = np.repeat(np.arange(self.n, dtype=np.int64), np.diff(self._indptr64))
+            rows_of = np.repeat(np.arange(self.n, dtype=np.int64), np.diff(indptr))
             self._entry_keys = rows_of * self.n + self.indices
         pos = np.searchsorted(self._entry_keys, r * self.n + c)
         ok = (pos >= lo) & (pos < hi)
