@@ -19,6 +19,7 @@ from ..solvers.cholmod_native import SimplicialCholesky
 from ..solvers.factory import factorize_local
 from ..solvers.gather import pattern_of, sharing_vertex_level
 from ..util import vertex_dofs
+from ..util.gathered import entries
 from ..util.sparse import as_csr, row_entries
 from ..util.threads import WORKERS, local_threads, on_local_thread, wait_all
 
@@ -626,7 +627,7 @@ class HarmonicExtension:
         build at 91 125 3D poses in the low-memory mode, which drops them; this takes ~0.1 s)."""
         rows = self.gamma[r0:r1]
         at, indptr = row_entries(A, rows)
-        B = sp.csr_matrix((A.data[at], self._local_row[A.indices[at]], indptr), shape=(len(rows), self.n))
+        B = sp.csr_matrix((entries(A, at), self._local_row[A.indices[at]], indptr), shape=(len(rows), self.n))
         B.has_sorted_indices = False  # (renumbered columns; scipy's product does not need them sorted)
         return B
 

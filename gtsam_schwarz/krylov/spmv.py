@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from ..util.gathered import GatheredCSR
 from ..util.sparse import row_block
 from ..util.threads import WORKERS, local_threads, on_local_thread
 
@@ -53,6 +54,7 @@ def threaded(A):
     """A as a :class:`RowBlockMatrix` where that pays (a CSR matrix of at least ``THREADED_FROM``
     entries, used outside the local threads: a job there waiting on its own pool could wait
     forever), else A itself."""
-    if isinstance(A, RowBlockMatrix) or not sp.isspmatrix_csr(A) or A.nnz < THREADED_FROM or on_local_thread():
+    if (isinstance(A, (RowBlockMatrix, GatheredCSR)) or not sp.isspmatrix_csr(A) or A.nnz < THREADED_FROM
+            or on_local_thread()):   # (a gathered matrix's product splits its work itself)
         return A
     return RowBlockMatrix(A)

@@ -16,6 +16,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..dd.geometry import VertexGeometry
+from ..util.gathered import is_gathered
 
 
 @dataclass
@@ -41,6 +42,15 @@ class LinearSystem:
         ``with`` block and restored exactly after it (no copy of H: at 91 125 3D poses 180 MB).
         ``diagonal_values``: H's diagonal when the caller has read it already (one gather less)."""
         diagonal = self.diagonal_positions()
+        if is_gathered(self.H):   # the diagonal's numbers in the source array (each its own there)
+            H, at = self.H, self.H.compose(diagonal)
+            saved = H.take_source(at) if diagonal_values is None else diagonal_values
+            H.source[at] = saved + d
+            try:
+                yield H
+            finally:
+                H.source[at] = saved
+            return
         data = self.H.data
         saved = data[diagonal] if diagonal_values is None else diagonal_values
         D = sp.csr_matrix((data, self.H.indices, self.H.indptr), shape=self.H.shape, copy=False)

@@ -22,8 +22,10 @@ import scipy.sparse as sp
 
 from ..dd.geometry import VertexGeometry
 from ..util import sorted_unique, with_small_pages
+from ..util.gathered import GatheredCSR
 from ..util.heap import populate_ahead
 from ..util.threads import background_thread
+from . import factor_form
 from . import native_kernels as nk
 from .base import LinearSystem
 
@@ -247,6 +249,9 @@ class _Kind:
     hseg: int = 0                     # offset of the off-diagonal blocks
     hsize: int = 0
     pairs: tuple | None = None        # duplicate pairs: (pair id, flipped, n pairs)
+    symk: np.ndarray | None = None    # (d, d): entry (a, b) of a diagonal block is sum row symk[a, b]
+    pair_ends: tuple | None = None    # duplicate pairs: the (lo, hi) poses of each pair
+    first_dof: np.ndarray | None = None   # each pose's first dof (the factor form's product)
 
     @property
     def n(self) -> int:
@@ -661,6 +666,7 @@ class NativeLinearizer:
             symk = np.empty((d, d), dtype=np.int64)
             for s, (a, b) in enumerate(K.sym):
                 symk[a, b] = symk[b, a] = s
+            K.symk = symk
             cidx = [K.between.i, K.between.j] if K.between is not None else []
             if K.prior is not None:
                 cidx.append(K.prior.j)
@@ -698,6 +704,8 @@ class NativeLinearizer:
                 first = np.zeros(npairs, dtype=np.int64)
                 first[pid[::-1]] = np.arange(m - 1, -1, -1)   # first factor of each pair
                 plo, phi = lo[first], hi[first]
+                forward = gi[first] <= gj[first]   # the pair's ends as poses of this kind (factor form)
+                K.pair_ends = (np.where(forward, F.i[first], F.j[first]), np.where(forward, F.j[first], F.i[first]))
                 base = K.hseg + np.arange(npairs)
                 puts.append((plo, phi, base, (a * d + b) * npairs))
                 puts.append((phi, plo, base, (b * d + a) * npairs))
@@ -899,7 +907,9 @@ class NativeLinearizer:
         """H (fixed CSR pattern), g = Σ JᵀW r and the error at ``state``, all native factors at once."""
         self._planned()
         t1 = time.perf_counter()
-        S = self._buffer("S", (self._src_size,))   # reused: H's data is a fresh gather of it
+        gathered = self.factor_form and self.factor_form_possible()
+        # reused: H's data is a fresh gather of it; in the factor form H reads it, so it is pooled
+        S = self._pooled("source", self._src_size) if gathered else self._buffer("S", (self._src_size,))
         S[self._zero] = 0.0
         g = np.zeros(self.dim)
         error = 0.0
@@ -909,6 +919,12 @@ class NativeLinearizer:
         state._cache["native_error"] = error
         self._kept_residuals = None
         t2 = time.perf_counter()
+        if gathered:
+            P = self.pattern
+            H = GatheredCSR.of(P.indptr, P.indices, (P.n, P.n), S, self._src, self._factor_product(S),
+                               diagonal_at=self.diagonal)
+            self.seconds = {"blocks": t2 - t1, "gather": 0.0, "gtsam": 0.0}
+            return LinearSystem(H=H, g=g, error=float(error), diagonal=self.diagonal, seconds=dict(self.seconds))
         data = self._data_buffer()
         src = self._src
         for lo in range(0, len(src), _TAKE_CHUNK):  # int32 positions: numpy converts them a chunk at a time
@@ -1030,14 +1046,51 @@ class NativeLinearizer:
     def _data_buffer(self) -> np.ndarray:
         """An array for H's values: a pooled one that nothing references any more (a returned H that
         is still alive keeps its own), else a new one. Saves the page faults of a fresh 8·nnz bytes."""
-        pool = self._buffers.setdefault("data", [])
+        return self._pooled("data", self.pattern.nnz)
+
+    def _pooled(self, name: str, size: int) -> np.ndarray:
+        """A pooled array of ``size`` numbers that nothing references any more (views count), else a new one."""
+        pool = self._buffers.setdefault(name, [])
         for k in range(len(pool)):
             if sys.getrefcount(pool[k]) == 2:   # the pool's reference and the call's argument only
                 return pool[k]
-        buf = np.empty(self.pattern.nnz)
+        buf = np.empty(size)
         if len(pool) < 3:
             pool.append(buf)
         return buf
+
+    # -- H in the factor form -----------------------------------------------------------------
+    # the native factors' source array holds all of H: with a compiled product (factor_form.py) H is
+    # handed out as a GatheredCSR, without its CSR values (1M 2D poses: 343 MiB); for iterative solvers
+    factor_form = False   # set by the optimizer where the linear solver multiplies by H (CG)
+
+    def factor_form_possible(self) -> bool:
+        """Whether H can go without its values: the kernels compiled, and every factor native."""
+        return factor_form.AVAILABLE and not (self._others is not None and self._others.graph.size())
+
+    def _factor_product(self, S: np.ndarray) -> factor_form.FactorProduct:
+        """x ↦ H x from the source array S (views of it: the product keeps S alive)."""
+        diagonals, blocks = [], []
+        for K in (self._k2, self._k3):
+            if K is None:
+                continue
+            d, nsym = K.d, len(K.sym)
+            if K.first_dof is None and not (d == 3 and K.dof is None):   # each pose's first dof, made once
+                K.first_dof = self.offsets[K.gvar]
+            simple = d == 3 and K.dof is None   # Pose2 dofs 0..3n−1: no table read per pose or factor
+            table = np.zeros(0, np.int64) if simple else K.first_dof
+            diagonals.append((S[K.dseg:K.dseg + nsym * K.n].reshape(nsym, K.n), K.symk, table))
+            if K.between is None:
+                continue
+            if K.pairs is not None:
+                npairs = K.pairs[2]
+                blocks.append((S[K.hseg:K.hseg + d * d * npairs].reshape(d * d, npairs), *K.pair_ends, table))
+                continue
+            m = K.nb
+            B = S[K.hseg:K.hseg + d * d * m]
+            B = B.reshape(d * d, m) if d == 3 else B.reshape(m, d * d).T   # 2D SoA, 3D AoS
+            blocks.append((B, K.between.i, K.between.j, table))
+        return factor_form.FactorProduct(self.dim, diagonals, blocks)
 
     def release_scratch(self, values: bool = False) -> None:
         """Drop the scratch arrays kept between linearizations (about 1.5 × H's values; ``values``: and

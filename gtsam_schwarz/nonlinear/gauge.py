@@ -15,6 +15,8 @@ from scipy.sparse.csgraph import connected_components
 from ..coarse.modes import rigid_modes
 from ..dd.geometry import VertexGeometry
 from ..util import sorted_unique, vertex_dofs
+from ..util.gathered import entries, is_gathered
+from ..util.sparse import as_csr
 
 FREE_TOL = 1e-8  # Rayleigh quotient zᵀHz / zᵀdiag(H)z of a translation mode below this: no anchor
 
@@ -33,7 +35,7 @@ def free_components(H: sp.csr_matrix, offsets: np.ndarray, geometry: VertexGeome
     nv = len(offsets) - 1
     if geometry is None or nv == 0:
         return np.zeros(0, dtype=np.int64)
-    H = sp.csr_matrix(H)
+    H = as_csr(H)   # (a gathered H stays one: its product reads its source)
     n_comp, comp = connected_components(_vertex_graph(H, offsets), directed=False)
     if sources is not None and len(sources) == 0:
         return _first_vertices(comp, n_comp)
@@ -49,9 +51,12 @@ def free_components(H: sp.csr_matrix, offsets: np.ndarray, geometry: VertexGeome
         dim = modes.shape[1]
         Z = np.zeros((H.shape[0], d))
         Z[(offsets[:-1, None] + np.arange(dim)).ravel()] = modes.reshape(nv * dim, d)
-    diag = H.data[diagonal] if diagonal is not None else H.diagonal()
+    diag = entries(H, diagonal) if diagonal is not None else H.diagonal()
     rows = slice(None) if sources is None else vertex_dofs(sorted_unique(sources), offsets)
-    HZ = (H[rows] if sources is not None else H) @ Z
+    if sources is None:
+        HZ = H @ Z
+    else:   # the rows of the sources alone (a gathered H: the whole product, its rows taken)
+        HZ = (H @ Z)[rows] if is_gathered(H) else H[rows] @ Z
     HZ *= Z[rows]
     ZZ = Z * Z
     ZZ *= diag[:, None]

@@ -25,6 +25,8 @@ from ..solvers.block_diagonal import vertex_block_order
 from ..schwarz.memory import estimate_two_level, fit_memory
 from ..util.threads import side_thread
 from ..solvers.memory import FACTOR_BYTES, MATRIX_BYTES, InsufficientMemoryError, available_memory, gib
+from ..util.gathered import stored
+from ..util.sparse import as_csr
 from .params import LinearSolverParams
 from .records import SolveResult
 
@@ -36,6 +38,9 @@ class LinearSolver:
 
     decomposition = None
     choice = ""  # the solver that runs (for "auto": the one it chose)
+    # whether H may come as a GatheredCSR (values in the linearizer's source array): the solver reads
+    # it only by products and gathers, never factorizes it whole
+    takes_gathered = False
     reason = ""  # why (for "auto": the predicted costs)
 
     def solve(self, H: sp.csr_matrix, rhs: np.ndarray, tol: float, geometry: Geometry,
@@ -133,7 +138,7 @@ class DirectSolver(LinearSolver):
 
     def solve(self, H, rhs, tol, geometry, decrement_tol=None, decrement_left=None):
         t0 = time.perf_counter()
-        H = sp.csr_matrix(H)
+        H = stored(H)
         fresh = self._factor is None or not self._pattern.matches(H)
         tried = 0
         if not fresh and not self._released:
@@ -178,6 +183,8 @@ class PreconditionedCG(LinearSolver):
     by less than ``lag_change`` (:class:`EntryChange`) and the poses have moved less than
     ``lag_distance`` since the build.
     """
+
+    takes_gathered = True
 
     def __init__(self, params: LinearSolverParams, offsets: np.ndarray, translation_mask: np.ndarray):
         self.params = params
@@ -357,7 +364,7 @@ class PreconditionedCG(LinearSolver):
         decrease left beyond the result (:func:`~gtsam_schwarz.krylov.pcg`'s ``left_bound``)."""
         p = self.params
         t0 = time.perf_counter()
-        H = sp.csr_matrix(H)
+        H = as_csr(H)   # (a gathered H stays one: CG multiplies by it from its source)
         cap = self._lag_cap(H)
         lagged = cap is not None
         reference = self._cg_after_build
@@ -544,6 +551,10 @@ class AutoSolver(LinearSolver):
     @property
     def decomposition(self):
         return self.chosen.decomposition if self.chosen is not None else None
+
+    @property
+    def takes_gathered(self) -> bool:
+        return self.chosen is not None and self.chosen.takes_gathered
 
     def choose(self, H, geometry: Geometry | None = None) -> LinearSolver:
         """Predict both costs and keep the cheaper solver (its name in ``choice``, why in ``reason``).

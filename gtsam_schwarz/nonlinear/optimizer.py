@@ -7,6 +7,7 @@ the step → the linearizer retracts and evaluates → the loop decides. What de
 
 from __future__ import annotations
 
+import os
 import time
 import warnings
 from contextlib import nullcontext
@@ -17,6 +18,7 @@ from ..dd.index_sets import vertex_dofs
 from ..util.blas import blas_limits
 from ..linearization.base import Linearizer, LinearSystem
 from ..util import with_small_pages
+from ..util.gathered import entries
 from ..solvers.memory import available_memory
 from ..util.heap import populate_ahead
 from .gauge import free_components
@@ -31,6 +33,9 @@ LINEAR_SOLVERS = linear_solver_names()
 # fresh memory a run touches per entry of H, at least (bench children after loading: 72-156 bytes;
 # model problems 72-77, city10000 91, sphere2500 96, lawnmowers 88 (Schwarz) and 126-156 (direct))
 FRESH_BYTES_PER_ENTRY = 64
+# H in the factor form (a GatheredCSR: no CSR values) from this many entries on, where the linear solver
+# takes it (CG): below, the kernels' first call (numba's cache loaded, ~0.4 s) is not worth the memory
+FACTOR_FORM_FROM = int(os.environ.get("GTSAM_SCHWARZ_FACTOR_FORM_FROM", 4_000_000))
 
 
 class SchwarzOptimizer:
@@ -149,6 +154,8 @@ class SchwarzOptimizer:
         elif hasattr(self.linear_solver, "ahead"):   # later ones: its work on the new poses alone
             state = self._state
             self.linear_solver.ahead(lambda: self.linearizer.geometry(state))
+        if hasattr(self.linearizer, "factor_form"):
+            self.linearizer.factor_form = self._factor_form()
         t0 = time.perf_counter()
         system = self.linearizer.linearize(self._state)
         total = time.perf_counter() - t0  # phases: GTSAM's path splits off its export to scipy
@@ -161,6 +168,12 @@ class SchwarzOptimizer:
                                            system.diagonal, getattr(self.linearizer, "prior_vertices", None))
             self._anchor_dofs = vertex_dofs(self.anchors, self.linearizer.offsets) if len(self.anchors) else None
         return system
+
+    def _factor_form(self) -> bool:
+        """Whether H comes without its CSR values (:class:`~gtsam_schwarz.util.gathered.GatheredCSR`):
+        a large H, for a linear solver that only multiplies by it and gathers from it."""
+        nnz = getattr(self.linearizer, "nnz_estimate", 0) or 0
+        return self.linear_solver.takes_gathered and nnz >= FACTOR_FORM_FROM
 
     def _prepare_linear_solver(self) -> None:
         """Hand the linear solver H's vertex pattern (the native linearizer's fixed pattern) and the
@@ -203,7 +216,7 @@ class SchwarzOptimizer:
         if lam == 0.0 and self._anchor_dofs is None:
             return None, None
         # the linearizer's known diagonal positions: a gather, not a search of every row
-        diag = system.H.data[system.diagonal_positions()]
+        diag = entries(system.H, system.diagonal_positions())
         return self._damping_diagonal(diag, lam, self._anchor_dofs), diag
 
     def _damped(self, system: LinearSystem, lam: float, damping: tuple | None = None):

@@ -12,6 +12,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..util import as_csr, vertex_dofs
+from ..util.gathered import entries
 from ..util.threads import WORKERS, local_threads, on_local_thread, run_all
 from . import cholmod_native
 from .base import SingularLocalMatrixError
@@ -80,7 +81,7 @@ def _block_diagonal_by_vertices(A: sp.csr_matrix, sets, positions: bool = False)
         P = block_positions(A, Bv, entry, vert, offsets, col_start, int(dims[0]))
         if positions:
             return P
-        B = sp.csr_matrix((A.data[P.data], P.indices, P.indptr), shape=P.shape, copy=False)
+        B = sp.csr_matrix((entries(A, P.data), P.indices, P.indptr), shape=P.shape, copy=False)
         B.has_sorted_indices = True
         return B
     dpos = np.cumsum(dims[vert]) - dims[vert]  # dof position of every vertex position
@@ -109,7 +110,7 @@ def _block_diagonal_by_vertices(A: sp.csr_matrix, sets, positions: bool = False)
     base += np.arange(nnz, dtype=itype)  # the entry's place in its vertex row's segment
     src = np.repeat((A.indptr[offsets[vert[row_vertex_pos]] + a]).astype(itype), lengths)
     src += seg_src.astype(itype, copy=False)[base]
-    data = A.data[src]
+    data = entries(A, src)
     del src
     cols = seg_cols.astype(itype, copy=False)[base]
     del base

@@ -6,6 +6,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..util import as_csr
+from ..util.gathered import entries
 
 
 class EntryChange:
@@ -36,7 +37,7 @@ class EntryChange:
         d = np.abs(R.diagonal() if diagonal is None else np.asarray(diagonal, dtype=float))
         d = np.where(d > 0, d, 1.0)
         self.scale = 1.0 / np.sqrt(d[rows] * d[self.cols])
-        self.values = R.data[idx].copy()
+        self.values = entries(R, idx).copy()
 
     def sums(self, A: sp.spmatrix) -> tuple[float, int]:
         """(Σ of the squared scaled changes, number of entries compared); inf when A's pattern is not
@@ -44,7 +45,7 @@ class EntryChange:
         A = as_csr(A)
         if A.shape != self.shape or A.nnz != self.nnz or not np.array_equal(A.indices[self.idx], self.cols):
             return float("inf"), 1
-        diff = (A.data[self.idx] - self.values) * self.scale
+        diff = (entries(A, self.idx) - self.values) * self.scale
         return float(diff @ diff), len(self.idx)
 
     def __call__(self, A: sp.spmatrix) -> float:

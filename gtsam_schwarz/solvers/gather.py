@@ -8,6 +8,7 @@ import threading
 import numpy as np
 import scipy.sparse as sp
 
+from ..util.gathered import is_gathered
 from ..util.sparse import as_csr, row_entries, vertex_pattern
 
 
@@ -53,19 +54,22 @@ class Gather:
     """B = extract(A) for an extraction that copies entries (submatrix, block diagonal, …).
 
     The pattern of B and the position in ``A.data`` of each of its entries are found once per
-    sparsity pattern of A; afterwards new numbers cost one gather ``A.data[src]``.
+    sparsity pattern of A; afterwards new numbers cost one gather ``A.data[src]``. For a
+    :class:`~gtsam_schwarz.util.gathered.GatheredCSR` A the positions are composed once with A's index
+    (then they point into A's source) and B's numbers are one gather from the source.
     """
 
     def __init__(self, extract):
         self.extract = extract
         self.pattern = None
         self.forgotten = None  # the pattern of A whose positions :meth:`forget` dropped
+        self.composed = None   # the index array that ``src`` was composed with (None: positions in A.data)
 
     def forget(self) -> None:
         """Drop the positions and B's pattern (memory); the next call finds them anew. ``forgotten``
         keeps which A they were for (a caller's factorization of B may still fit the next A)."""
         self.forgotten = self.pattern or self.forgotten
-        self.pattern = self.src = self.indices = self.indptr = None
+        self.pattern = self.src = self.indices = self.indptr = self.composed = None
 
     def renew(self, A: sp.spmatrix) -> tuple[sp.csr_matrix, bool]:
         """:meth:`prepare` for A, and whether A has the pattern of the positions held before (or last
@@ -81,15 +85,21 @@ class Gather:
         A = as_csr(A)
         if not A.has_sorted_indices:
             A = A.sorted_indices()
-        if self.pattern is None or not self.pattern.matches(A):
+        gathered = is_gathered(A)
+        if (self.pattern is None or not self.pattern.matches(A)
+                or (self.composed is not None and self.composed is not (A.index if gathered else None))):
             self.src, self.indices, self.indptr, self.shape = self._positions(A)
             self.pattern = pattern_of(A)
+            self.composed = None
+        if gathered and self.composed is None:   # positions into A's source from now on
+            self.src, self.composed = A.compose(self.src), A.index
         return A
 
     def __call__(self, A: sp.spmatrix) -> sp.csr_matrix:
         A = self.prepare(A)
         # every result shares the (read-only) index arrays: only its numbers are new
-        B = sp.csr_matrix((A.data[self.src], self.indices, self.indptr), shape=self.shape, copy=False)
+        data = A.take_source(self.src) if self.composed is not None else A.data[self.src]
+        B = sp.csr_matrix((data, self.indices, self.indptr), shape=self.shape, copy=False)
         B.has_sorted_indices = True
         return B
 

@@ -41,6 +41,7 @@ from ...schwarz.one_level import AdditiveSchwarz, BlockJacobi
 from ...schwarz.pointwise import Identity, Jacobi
 from ...schwarz.two_level import TwoLevelSchwarz
 from ...solvers import EntryChange, Gather
+from ...util.gathered import stored
 from .coarse import LocalCoarseBasis
 from .layout import RankLayout, rank_layout
 
@@ -133,6 +134,8 @@ class PetscSchwarzSolver(PreconditionedCG):
     factorizations. ``options``: extra PETSc options (without the solver's prefix, e.g.
     ``{"ksp_monitor": ""}``). ``coarse_matrix``: "harmonic" (A₀ = (AΦ_Γ)ᵀΦ, as the serial code; default,
     about 20× cheaper on M3500) or "galerkin" (PCMG's PtAP, PCMGSetGalerkin)."""
+
+    takes_gathered = False   # H is copied into PETSc's matrix whole
 
     def __init__(self, params: LinearSolverParams, offsets: np.ndarray, translation_mask: np.ndarray,
                  comm=None, local_solver: str = "auto", options: dict | None = None,
@@ -447,7 +450,7 @@ class PetscSchwarzSolver(PreconditionedCG):
         """CG to relative residual ``tol`` (same lagging decisions as PreconditionedCG); the step x
         in the original numbering, complete on every rank."""
         t0 = time.perf_counter()
-        H = sp.csr_matrix(H)
+        H = stored(H)
         self._layout(H, geometry)   # the serial solver's subdomains (its partition sees the poses too)
         created = self._assemble(H)
         lay = self.layout
