@@ -9,20 +9,48 @@ H_ij x_j and H_ijᵀ x_i: at 1M 2D poses one thread takes about as long as scipy
 
 from __future__ import annotations
 
+import importlib.util
+
 import numpy as np
 
 from ..util.threads import local_threads, on_local_thread
 
-try:   # compiled kernels; without numba the linearizer keeps H's CSR values
-    import numba
-except ImportError:  # pragma: no cover - numba is a dependency; a build without it still runs
-    numba = None
+# numba is imported, and the kernels compiled (or loaded from its cache), on their first call: a
+# process that never multiplies in the factor form pays nothing (numba's import: +81 MiB of RSS and
+# ~0.5 s; the first kernel another +51 MiB and ~0.5 s, measured here)
+AVAILABLE = importlib.util.find_spec("numba") is not None
 
-AVAILABLE = numba is not None
+
+class _Kernel:
+    """A function compiled by numba (nopython, GIL released, cached on disk) when first called."""
+
+    def __init__(self, f):
+        self.f, self.compiled = f, None
+        self.__doc__ = f.__doc__
+
+    def __call__(self, *args):
+        if self.compiled is None:
+            import numba
+            self.compiled = numba.njit(cache=True, nogil=True)(self.f)
+        return self.compiled(*args)
 
 
 def _jit(f):
-    return numba.njit(cache=True, nogil=True)(f) if AVAILABLE else f
+    return _Kernel(f)
+
+
+def warm_up() -> None:
+    """Import numba and compile (or load) the kernels on tiny arrays: for a background thread, so
+    that the first product does not wait for them."""
+    x, y, ends, none, dof = np.zeros(18), np.zeros(18), np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(1, np.int64)
+    _diagonal_product3(np.zeros((6, 1)), np.zeros((3, 3), np.int64), x, y)            # Pose2
+    _block_product3(np.zeros((9, 1)), ends, ends, none, x, y, 0, 1)
+    _diagonal_product(np.zeros((21, 1)), np.zeros((6, 6), np.int64), dof, x, y)        # Pose3
+    _block_product(np.zeros((1, 36)).T, ends, ends, dof, x, y, 0, 1)   # (its blocks: a transposed view)
+    bptr, one = np.array([0, 1], np.int64), np.ones(1, np.int64)
+    for positions in (np.zeros(1, np.int32), np.zeros(1, np.int64)):   # (gathers' positions: either width)
+        _compose_blocks(positions, np.zeros(1, np.int32), bptr, one, 3, np.zeros(1, np.int32), np.zeros(1, np.uint8),
+                        np.zeros((1, 3, 3), np.int64))
 
 
 @_jit
@@ -90,6 +118,63 @@ def _block_product3(B, ends_i, ends_j, dof, x, y, lo, hi):
         y[j] += b0 * xi0 + b3 * xi1 + b6 * xi2
         y[j + 1] += b1 * xi0 + b4 * xi1 + b7 * xi2
         y[j + 2] += b2 * xi0 + b5 * xi1 + b8 * xi2
+
+
+@_jit
+def _compose_blocks(positions, out, bptr, rowlen, d, bsrc, btype, coef):
+    """out[t] = the source position of H's CSR entry positions[t], for d×d blocks everywhere: block row v
+    holds entries [bptr[v]·d², bptr[v+1]·d²), dof row a of it rowlen[v]·d of them, block k's entry (a, b)
+    reads bsrc[k] + coef[btype[k], a, b]. The block row is searched only when a position leaves the last
+    one (positions mostly come row after row)."""
+    nv = bptr.shape[0] - 1
+    dd = d * d
+    v = 0
+    for t in range(positions.shape[0]):
+        p = positions[t]
+        if p < bptr[v] * dd or p >= bptr[v + 1] * dd:
+            lo, hi = 0, nv
+            while hi - lo > 1:
+                mid = (lo + hi) // 2
+                if bptr[mid] * dd <= p:
+                    lo = mid
+                else:
+                    hi = mid
+            v = lo
+        q = p - bptr[v] * dd
+        width = rowlen[v] * d
+        a = q // width
+        r = q - a * width
+        kk = r // d
+        k = bptr[v] + kk
+        out[t] = bsrc[k] + coef[btype[k], a, r - kk * d]
+
+
+class BlockSourceMap:
+    """Where each of H's CSR entries sits in the source array, from one number per block instead of one
+    per entry (uniform d×d blocks: 1M 2D poses, 25 MB for 172 MB): block k of the pattern reads
+    ``bsrc[k] + coef[btype[k]]``. Used as a GatheredCSR's index (:meth:`compose`)."""
+
+    def __init__(self, bptr: np.ndarray, rowlen: np.ndarray, d: int, bsrc: np.ndarray, btype: np.ndarray,
+                 coef: np.ndarray, nnz: int):
+        self.bptr, self.rowlen, self.d = bptr, rowlen, d
+        self.bsrc, self.btype, self.coef, self.nnz = bsrc, btype, coef, nnz
+        self.dtype = bsrc.dtype
+
+    def compose(self, positions: np.ndarray) -> np.ndarray:
+        """Source positions of the entries at ``positions`` (any order; fastest row after row)."""
+        positions = np.ascontiguousarray(positions)
+        out = np.empty(len(positions), dtype=self.dtype)
+        if len(positions):
+            _compose_blocks(positions, out, self.bptr, self.rowlen, self.d, self.bsrc, self.btype, self.coef)
+        return out
+
+    def entries(self, lo: int, hi: int) -> np.ndarray:
+        """Source positions of the entries lo..hi−1."""
+        return self.compose(np.arange(lo, hi, dtype=np.int64))
+
+    @property
+    def nbytes(self) -> int:
+        return self.bsrc.nbytes + self.btype.nbytes + self.coef.nbytes
 
 
 class FactorProduct:

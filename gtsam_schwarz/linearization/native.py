@@ -714,6 +714,7 @@ class NativeLinearizer:
         self._src_size = size + 1
         # entry-sized: int32 where the source array allows (half the memory)
         self._src = P.source_index(puts, fill=size, dtype=np.int32 if size < 2**31 - 1 else np.int64)
+        self._block_map = self._make_block_map(puts, self._src.dtype)
         self._other_pos = None  # (indptr, indices, positions) of the last H of the other factors
 
     # -----------------------------------------------------------------------------------------
@@ -921,12 +922,15 @@ class NativeLinearizer:
         t2 = time.perf_counter()
         if gathered:
             P = self.pattern
-            H = GatheredCSR.of(P.indptr, P.indices, (P.n, P.n), S, self._src, self._factor_product(S),
+            index = self._src
+            if self._block_map is not None:   # the per-entry index is not held while H comes gathered
+                index, self._src = self._block_map, None
+            H = GatheredCSR.of(P.indptr, P.indices, (P.n, P.n), S, index, self._factor_product(S),
                                diagonal_at=self.diagonal)
             self.seconds = {"blocks": t2 - t1, "gather": 0.0, "gtsam": 0.0}
             return LinearSystem(H=H, g=g, error=float(error), diagonal=self.diagonal, seconds=dict(self.seconds))
         data = self._data_buffer()
-        src = self._src
+        src = self._entry_sources()
         for lo in range(0, len(src), _TAKE_CHUNK):  # int32 positions: numpy converts them a chunk at a time
             np.take(S, src[lo:lo + _TAKE_CHUNK], mode="clip", out=data[lo:lo + _TAKE_CHUNK])
         t3 = time.perf_counter()
@@ -1067,6 +1071,38 @@ class NativeLinearizer:
     def factor_form_possible(self) -> bool:
         """Whether H can go without its values: the kernels compiled, and every factor native."""
         return factor_form.AVAILABLE and not (self._others is not None and self._others.graph.size())
+
+    def _make_block_map(self, puts: list, dtype) -> factor_form.BlockSourceMap | None:
+        """The gather index as one source offset and one coefficient table per block (the factor form's
+        index: the per-entry one is then dropped); None for mixed block sizes or blocks no native factor fills."""
+        P = self._pattern
+        if not P.uniform or len(puts) > 255:
+            return None
+        nb, d = len(P.block_rows), P.d
+        bsrc, btype = np.empty(nb, dtype=dtype), np.empty(nb, dtype=np.uint8)
+        coef = np.empty((len(puts), d, d), dtype=np.int64)
+        covered = 0
+        for t, (rows, cols, base, c) in enumerate(puts):
+            k = P.block_index(rows, cols)
+            bsrc[k], btype[k], coef[t] = base, t, c
+            covered += len(k)
+        if covered != nb:
+            return None
+        return factor_form.BlockSourceMap(P._bptr, P._rowlen, d, bsrc, btype, coef, P.nnz)
+
+    def _entry_sources(self) -> np.ndarray:
+        """The gather index of H's CSR values (made again from the block map where the factor form dropped it)."""
+        if self._src is None:
+            src = np.empty(self.pattern.nnz, dtype=self._block_map.dtype)
+            for lo in range(0, len(src), _TAKE_CHUNK):
+                src[lo:lo + _TAKE_CHUNK] = self._block_map.entries(lo, min(lo + _TAKE_CHUNK, len(src)))
+            self._src = src
+        return self._src
+
+    def prepare_factor_form(self) -> None:
+        """Compile (or load) the factor form's kernels on the background thread, beside the start."""
+        if self.factor_form_possible():
+            background_thread().submit(factor_form.warm_up)
 
     def _factor_product(self, S: np.ndarray) -> factor_form.FactorProduct:
         """x ↦ H x from the source array S (views of it: the product keeps S alive)."""

@@ -36,6 +36,9 @@ FRESH_BYTES_PER_ENTRY = 64
 # H in the factor form (a GatheredCSR: no CSR values) from this many entries on, where the linear solver
 # takes it (CG): below, the kernels' first call (numba's cache loaded, ~0.4 s) is not worth the memory
 FACTOR_FORM_FROM = int(os.environ.get("GTSAM_SCHWARZ_FACTOR_FORM_FROM", 4_000_000))
+# what the factor form does not hold per entry: H's values (8 bytes) and the gather index (4); its prefault
+# is that much smaller (1M 2D lawnmower: the peak 3 917 → 3 516-3 606 MiB, the run's own ~3 650 without one)
+FACTOR_FORM_SAVES_PER_ENTRY = 12
 
 
 class SchwarzOptimizer:
@@ -60,6 +63,9 @@ class SchwarzOptimizer:
         if linearizer is None:
             linearizer = make_linearizer(graph, initial, self.nonlinear_params.linearization)
         self.linearizer = linearizer
+        p = self.nonlinear_params
+        self.linear_solver: LinearSolver = make_linear_solver(p.linear_solver, linearizer.offsets,
+                                                              linearizer.translation_mask())
         # faulted in on a helper thread while the start is computed (tuned heap only); the native
         # linearizer's estimate, not its pattern, which may still be in the making
         nnz = getattr(linearizer, "nnz_estimate", None)
@@ -67,7 +73,8 @@ class SchwarzOptimizer:
             nnz = linearizer.pattern.nnz
         if nnz is not None:   # at most a share of what the linear solver may use (its memory limit)
             limit = available_memory(self.nonlinear_params.linear_solver.memory_limit)
-            populate_ahead(FRESH_BYTES_PER_ENTRY * nnz, ceiling=limit)
+            fresh = FRESH_BYTES_PER_ENTRY - (FACTOR_FORM_SAVES_PER_ENTRY if self._factor_form() else 0)
+            populate_ahead(fresh * nnz, ceiling=limit)
         method = self.nonlinear_params.initialization
         # the chordal start's solver choice is analysed on the side thread while the start is read
         prepared = prepare_chordal(linearizer, self._chordal_solver()) if method != "file" and self.chordal_ahead else None
@@ -81,13 +88,12 @@ class SchwarzOptimizer:
         self.final_gradient_norm = float("nan")
         self._g0 = None
         self._last_decrease: float | None = None  # the previous accepted step's error decrease
-        p = self.nonlinear_params
         self.method = "lm" if isinstance(p, LevenbergMarquardtParams) else "gn"
         self._lambda = p.lambda_initial if self.method == "lm" else 0.0
         self.anchors: np.ndarray | None = None  # first vertex of each component without a prior
         self._anchor_dofs = None
-        self.linear_solver: LinearSolver = make_linear_solver(p.linear_solver, linearizer.offsets,
-                                                              linearizer.translation_mask())
+        if self._factor_form(expected=True) and hasattr(linearizer, "prepare_factor_form"):
+            linearizer.prepare_factor_form()
         if hasattr(self.linear_solver, "on_choice"):  # auto: decided on the first solve
             self.linear_solver.on_choice = lambda choice: choice != "direct" and self._release_scratch()
         # inexact Newton steps where CG with a Schwarz preconditioner solves them ("" = the automatic
@@ -169,11 +175,15 @@ class SchwarzOptimizer:
             self._anchor_dofs = vertex_dofs(self.anchors, self.linearizer.offsets) if len(self.anchors) else None
         return system
 
-    def _factor_form(self) -> bool:
+    def _factor_form(self, expected: bool = False) -> bool:
         """Whether H comes without its CSR values (:class:`~gtsam_schwarz.util.gathered.GatheredCSR`):
-        a large H, for a linear solver that only multiplies by it and gathers from it."""
+        a large H, for a linear solver that only multiplies by it and gathers from it (``expected``: or
+        one whose automatic choice is still open)."""
         nnz = getattr(self.linearizer, "nnz_estimate", 0) or 0
-        return self.linear_solver.takes_gathered and nnz >= FACTOR_FORM_FROM
+        open_choice = expected and self.linear_solver.choice == ""
+        possible = getattr(self.linearizer, "factor_form_possible", None)
+        return ((self.linear_solver.takes_gathered or open_choice) and nnz >= FACTOR_FORM_FROM
+                and possible is not None and possible())
 
     def _prepare_linear_solver(self) -> None:
         """Hand the linear solver H's vertex pattern (the native linearizer's fixed pattern) and the

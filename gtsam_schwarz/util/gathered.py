@@ -42,8 +42,11 @@ class GatheredCSR(sp.csr_matrix):
         return A
 
     def compose(self, positions: np.ndarray) -> np.ndarray:
-        """Positions in ``source`` of the entries at ``positions`` of H's values (the same dtype)."""
+        """Positions in ``source`` of the entries at ``positions`` of H's values. ``index``: an array (one
+        position per entry) or an object whose ``compose(positions)`` finds them (a block map)."""
         positions = np.asarray(positions)
+        if not isinstance(self.index, np.ndarray):
+            return self.index.compose(positions)
         out = np.empty(len(positions), dtype=self.index.dtype)
         for lo in range(0, len(positions), _CHUNK):
             np.take(self.index, positions[lo:lo + _CHUNK], out=out[lo:lo + _CHUNK])
@@ -64,7 +67,12 @@ class GatheredCSR(sp.csr_matrix):
         """The ordinary CSR matrix (its values gathered: 8·nnz bytes), for solvers that factorize H."""
         if self.source is None:
             raise TypeError("a matrix derived from a GatheredCSR has no source: materialize() the GatheredCSR first")
-        H = sp.csr_matrix((self.take_source(self.index), self.indices, self.indptr), shape=self.shape, copy=False)
+        data = np.empty(self.nnz)
+        for lo in range(0, self.nnz, _CHUNK):
+            hi = min(lo + _CHUNK, self.nnz)
+            at = self.index[lo:hi] if isinstance(self.index, np.ndarray) else self.index.entries(lo, hi)
+            np.take(self.source, at, out=data[lo:hi])
+        H = sp.csr_matrix((data, self.indices, self.indptr), shape=self.shape, copy=False)
         H.has_sorted_indices = True
         H.has_canonical_format = True
         return H

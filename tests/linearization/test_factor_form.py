@@ -102,6 +102,34 @@ def test_the_factor_form_product_is_the_csr_product(name, monkeypatch):
     np.testing.assert_array_equal(entries(G, at), H.data[at])
 
 
+@pytest.mark.parametrize("name", ["lawnmower", "survey3d", "pairs2d", "pairs3d"])
+def test_the_block_map_gives_every_entry_its_place_in_the_source(name):
+    """One offset per block instead of one per entry; the per-entry index is dropped while H comes
+    gathered and made again from the map when a stored H is asked for."""
+    lin = next(lin for n, lin, _ in _cases() if n == name)
+    state = lin.initial_state()
+    full = lin._src.copy()
+    block_map = lin._block_map
+    assert block_map is not None and block_map.nbytes < full.nbytes / 3
+    np.testing.assert_array_equal(block_map.entries(0, len(full)), full)
+    rng = np.random.default_rng(2)
+    at = rng.permutation(len(full))[: len(full) // 3]          # any order
+    np.testing.assert_array_equal(block_map.compose(at), full[at])
+    np.testing.assert_array_equal(block_map.compose(at.astype(np.int32)), full[at])
+    plain, gathered = _both(lin, state)
+    assert gathered.H.index is block_map
+    np.testing.assert_array_equal(gathered.H.materialize().data, plain.H.data)
+    assert lin._src is None                                     # dropped by the gathered linearization
+    again = lin.linearize(state)                                # stored values: the index made again
+    np.testing.assert_array_equal(lin._src, full)
+    np.testing.assert_array_equal(again.H.data, plain.H.data)
+
+
+def test_mixed_block_sizes_keep_the_per_entry_index():
+    lin, _ = _mixed_graph()
+    assert lin._block_map is None and isinstance(lin._src, np.ndarray)
+
+
 def test_a_matrix_that_is_not_gathered_is_not_changed_by_the_helpers():
     lin = NativeLinearizer.from_arrays(**lawnmower(5, 6).arrays)
     H = lin.linearize(lin.initial_state()).H

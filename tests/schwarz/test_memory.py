@@ -101,18 +101,25 @@ def test_optimizer_refuses_with_the_error(survey):
         gs.SchwarzOptimizer(prob.graph, prob.initial, params).optimize()
 
 
-def test_the_optimizers_prefault_stays_under_its_memory_limit(survey, monkeypatch):
-    """The heap the optimizer faults in ahead (64 bytes per entry of H) is bounded by the linear
-    solver's memory limit: the limit goes to populate_ahead as its ceiling."""
+@pytest.mark.parametrize("factor_form", [False, True])
+def test_the_optimizers_prefault_stays_under_its_memory_limit(survey, monkeypatch, factor_form):
+    """The heap the optimizer faults in ahead (64 bytes per entry of H; 12 fewer where H comes in the factor
+    form, without its values and gather index) is bounded by the linear solver's memory limit: the limit
+    goes to populate_ahead as its ceiling."""
     import gtsam_schwarz.nonlinear.optimizer as opt
+    from gtsam_schwarz.linearization import factor_form as ff
     from gtsam_schwarz.linearization.native import NativeLinearizer
+    if factor_form and not ff.AVAILABLE:
+        pytest.skip("numba is not installed")
     asked = []
     monkeypatch.setattr(opt, "populate_ahead", lambda nbytes, ceiling=None: asked.append((nbytes, ceiling)))
+    monkeypatch.setattr(opt, "FACTOR_FORM_FROM", 0 if factor_form else 10**12)
     prob = survey[0]
     params = gs.SchwarzParams(method="lm", preconditioner="rgdsw-linear", memory_limit="3M", initialization="file")
     lin = NativeLinearizer(prob.graph, prob.initial)
     gs.SchwarzOptimizer(prob.graph, prob.initial, params, linearizer=lin)
-    assert asked == [(opt.FRESH_BYTES_PER_ENTRY * lin.pattern.nnz, 3 * 2**20)]
+    per_entry = opt.FRESH_BYTES_PER_ENTRY - (opt.FACTOR_FORM_SAVES_PER_ENTRY if factor_form else 0)
+    assert asked == [(per_entry * lin.pattern.nnz, 3 * 2**20)]
     assert asked[0][0] > 3 * 2**20   # the request exceeds the limit: populate_ahead caps it
 
 
