@@ -46,7 +46,7 @@ def warm_up() -> None:
     _diagonal_product3(np.zeros((6, 1)), np.zeros((3, 3), np.int64), x, y)            # Pose2
     _block_product3(np.zeros((9, 1)), ends, ends, none, x, y, 0, 1)
     _diagonal_product(np.zeros((21, 1)), np.zeros((6, 6), np.int64), dof, x, y)        # Pose3
-    _block_product(np.zeros((1, 36)).T, ends, ends, dof, x, y, 0, 1)   # (its blocks: a transposed view)
+    _block_product6(np.zeros((1, 36)).T, ends, ends, dof, x, y, 0, 1)   # (its blocks: a transposed view)
     bptr, one = np.array([0, 1], np.int64), np.ones(1, np.int64)
     for positions in (np.zeros(1, np.int32), np.zeros(1, np.int64)):   # (gathers' positions: either width)
         _compose_blocks(positions, np.zeros(1, np.int32), bptr, one, 3, np.zeros(1, np.int32), np.zeros(1, np.uint8),
@@ -81,26 +81,26 @@ def _diagonal_product3(D, symk, x, y):
 
 
 @_jit
-def _block_product(B, ends_i, ends_j, dof, x, y, lo, hi):
-    """y += H_ij x_j and H_ijᵀ x_i for every block f: H_ij[a, b] = B[a·d + b, f] between the poses
-    ends_i[f] and ends_j[f], whose dofs start at dof[·]."""
-    d = 6 if B.shape[0] == 36 else 3
+def _block_product6(B, ends_i, ends_j, dof, x, y, lo, hi):
+    """y += H_ij x_j and H_ijᵀ x_i for the 6×6 blocks f in lo..hi−1: H_ij[a, b] = B[a·6 + b, f] between
+    the poses ends_i[f] and ends_j[f], whose dofs start at dof[·] (the loops' bounds are constants, so
+    the compiler unrolls them)."""
     for f in range(lo, hi):
         i = dof[ends_i[f]]
         j = dof[ends_j[f]]
-        for a in range(d):
+        for a in range(6):
             s = 0.0
             t = 0.0
-            for b in range(d):
-                s += B[a * d + b, f] * x[j + b]
-                t += B[b * d + a, f] * x[i + b]
+            for b in range(6):
+                s += B[a * 6 + b, f] * x[j + b]
+                t += B[b * 6 + a, f] * x[i + b]
             y[i + a] += s
             y[j + a] += t
 
 
 @_jit
 def _block_product3(B, ends_i, ends_j, dof, x, y, lo, hi):
-    """:func:`_block_product` for 3×3 blocks, unrolled (at 1M 2D poses 2.5× faster than the loops)."""
+    """:func:`_block_product6` for 3×3 blocks, unrolled (at 1M 2D poses 2.5× faster than the loops)."""
     step = dof.shape[0] == 0   # no table: pose p's dofs start at 3p
     for f in range(lo, hi):
         if step:
@@ -179,11 +179,11 @@ class BlockSourceMap:
 
 class FactorProduct:
     """x ↦ H x from one source array: per kind the diagonal sums and the off-diagonal blocks (views),
-    with each pose's first dof (an empty table: Pose2 dofs 0..3n−1). From ``THREADED_FROM`` blocks the
+    with each pose's first dof (an empty table: Pose2 dofs 0..3n−1). From ``THREADED_FROM`` blocks' entries the
     blocks are split between the local threads (the kernels release the GIL), the second half summed
     into its own vector."""
 
-    THREADED_FROM = 500_000
+    THREADED_FROM = 2_000_000   # entries of the off-diagonal blocks (as scipy's threaded product, spmv.py)
 
     def __init__(self, n: int, diagonals: list, blocks: list):
         self.n, self.diagonals, self.blocks = n, diagonals, blocks
@@ -201,13 +201,13 @@ class FactorProduct:
         if B.shape[0] == 9:
             _block_product3(B, ei, ej, dof, x, y, lo, hi)
         else:
-            _block_product(B, ei, ej, dof, x, y, lo, hi)
+            _block_product6(B, ei, ej, dof, x, y, lo, hi)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         y = np.empty(self.n)
         self._diagonals(x, y)
-        m = sum(block[0].shape[1] for block in self.blocks)
-        if m < self.THREADED_FROM or on_local_thread():
+        entries = sum(block[0].shape[0] * block[0].shape[1] for block in self.blocks)
+        if entries < self.THREADED_FROM or on_local_thread():
             for block in self.blocks:
                 self._blocks(block, x, y, 0, block[0].shape[1])
             return y
