@@ -35,8 +35,9 @@ LINEAR_SOLVERS = linear_solver_names()
 FRESH_BYTES_PER_ENTRY = 64
 # H in the factor form (a GatheredCSR: no CSR values) from this many entries on, where the linear solver
 # takes it (CG). numba's import and the kernels' loading cost ~1 s of Python work beside the start: below,
-# that is not worth the memory (3D 32x32x32, 8M entries: 12.2 against 11.2-11.6 s for 92 MiB; lawnmower
-# 600x600, 16M: 16.2 against 15.4-15.6 s); the 3D 45x45x45 survey (22.5M) and the 1M lawnmower (45M) take it
+# that is not worth the memory (3D 32x32x32, 8M entries: 12.2 against 11.2-11.6 s without it, for 92 MiB;
+# lawnmower 600x600, 16M: 16.21 s in a bench against 15.38-15.63 s in earlier sessions'); the 3D 45x45x45
+# survey (22.5M entries) and the 1M lawnmower (45M) take it
 FACTOR_FORM_FROM = int(os.environ.get("GTSAM_SCHWARZ_FACTOR_FORM_FROM", 20_000_000))
 # what the factor form does not hold per entry: H's values (8 bytes) and the gather index (4); its prefault
 # is that much smaller (1M 2D lawnmower: the peak 3 917 → 3 516-3 606 MiB, the run's own ~3 650 without one)
