@@ -39,14 +39,17 @@ def _jit(f):
     return _Kernel(f)
 
 
-def warm_up() -> None:
-    """Import numba and compile (or load) the kernels on tiny arrays: for a background thread, so
-    that the first product does not wait for them."""
+def warm_up(dims: tuple = (3, 6)) -> None:
+    """Import numba and compile (or load from its cache: ~0.1 s each) the kernels of the block sizes
+    ``dims`` on tiny arrays, with the argument types of the real calls: for a background thread, so
+    that the first product does not wait for them (its Python work holds the GIL: no more than needed)."""
     x, y, ends, none, dof = np.zeros(18), np.zeros(18), np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(1, np.int64)
-    _diagonal_product3(np.zeros((6, 1)), np.zeros((3, 3), np.int64), x, y)            # Pose2
-    _block_product3(np.zeros((9, 1)), ends, ends, none, x, y, 0, 1)
-    _diagonal_product(np.zeros((21, 1)), np.zeros((6, 6), np.int64), dof, x, y)        # Pose3
-    _block_product6(np.zeros((1, 36)).T, ends, ends, dof, x, y, 0, 1)   # (its blocks: a transposed view)
+    if 3 in dims:
+        _diagonal_product3(np.zeros((6, 1)), np.zeros((3, 3), np.int64), x, y)            # Pose2
+        _block_product3(np.zeros((9, 1)), ends, ends, none, x, y, 0, 1)
+    if 6 in dims:
+        _diagonal_product(np.zeros((21, 1)), np.zeros((6, 6), np.int64), dof, x, y)        # Pose3
+        _block_product6(np.zeros((2, 36)).T, ends, ends, dof, x, y, 0, 1)   # (its blocks: a transposed, F-ordered view)
     bptr, one = np.array([0, 1], np.int64), np.ones(1, np.int64)
     for positions in (np.zeros(1, np.int32), np.zeros(1, np.int64)):   # (gathers' positions: either width)
         _compose_blocks(positions, np.zeros(1, np.int32), bptr, one, 3, np.zeros(1, np.int32), np.zeros(1, np.uint8),

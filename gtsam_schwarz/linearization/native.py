@@ -1102,7 +1102,8 @@ class NativeLinearizer:
     def prepare_factor_form(self) -> None:
         """Compile (or load) the factor form's kernels on the background thread, beside the start."""
         if self.factor_form_possible():
-            background_thread().submit(factor_form.warm_up)
+            dims = tuple(K.d for K in (self._k2, self._k3) if K is not None)
+            background_thread().submit(factor_form.warm_up, dims)
 
     def _factor_product(self, S: np.ndarray) -> factor_form.FactorProduct:
         """x ↦ H x from the source array S (views of it: the product keeps S alive)."""
