@@ -10,6 +10,7 @@ H_ij x_j and H_ijᵀ x_i: at 1M 2D poses one thread takes about as long as scipy
 from __future__ import annotations
 
 import importlib.util
+import threading
 
 import numpy as np
 
@@ -27,11 +28,14 @@ class _Kernel:
     def __init__(self, f):
         self.f, self.compiled = f, None
         self.__doc__ = f.__doc__
+        self._lock = threading.Lock()   # the warm-up's thread and a first product: one dispatcher
 
     def __call__(self, *args):
         if self.compiled is None:
-            import numba
-            self.compiled = numba.njit(cache=True, nogil=True)(self.f)
+            with self._lock:
+                if self.compiled is None:
+                    import numba
+                    self.compiled = numba.njit(cache=True, nogil=True)(self.f)
         return self.compiled(*args)
 
 

@@ -78,6 +78,8 @@ class SchwarzOptimizer:
             limit = available_memory(self.nonlinear_params.linear_solver.memory_limit)
             fresh = FRESH_BYTES_PER_ENTRY - (FACTOR_FORM_SAVES_PER_ENTRY if self._factor_form() else 0)
             populate_ahead(fresh * nnz, ceiling=limit)
+        if self._factor_form(expected=True) and hasattr(linearizer, "prepare_factor_form"):
+            linearizer.prepare_factor_form()   # numba's kernels loaded beside the start
         method = self.nonlinear_params.initialization
         # the chordal start's solver choice is analysed on the side thread while the start is read
         prepared = prepare_chordal(linearizer, self._chordal_solver()) if method != "file" and self.chordal_ahead else None
@@ -95,8 +97,6 @@ class SchwarzOptimizer:
         self._lambda = p.lambda_initial if self.method == "lm" else 0.0
         self.anchors: np.ndarray | None = None  # first vertex of each component without a prior
         self._anchor_dofs = None
-        if self._factor_form(expected=True) and hasattr(linearizer, "prepare_factor_form"):
-            linearizer.prepare_factor_form()
         if hasattr(self.linear_solver, "on_choice"):  # auto: decided on the first solve
             self.linear_solver.on_choice = lambda choice: choice != "direct" and self._release_scratch()
         # inexact Newton steps where CG with a Schwarz preconditioner solves them ("" = the automatic
