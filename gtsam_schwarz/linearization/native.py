@@ -1135,9 +1135,10 @@ class NativeLinearizer:
 
     def release_scratch(self, values: bool = False) -> None:
         """Drop the scratch arrays kept between linearizations (about 1.5 × H's values; ``values``: and
-        the pooled arrays of H's values, which a returned H still alive keeps for itself): for runs
-        whose memory peak comes later (a Schwarz build, the result), at the price of fresh pages next time."""
-        self._buffers = {} if values else {"data": self._buffers.get("data", [])}
+        the pooled arrays of H's values and of the factor form's source, which a returned H still alive
+        keeps for itself): for runs whose memory peak comes later (a Schwarz build, the result), at the
+        price of fresh pages next time."""
+        self._buffers = {} if values else {k: self._buffers.get(k, []) for k in ("data", "source")}
         self._kept_residuals = None
 
     def _buffer(self, name: str, shape: tuple) -> np.ndarray:
