@@ -14,7 +14,7 @@ import scipy.sparse as sp
 
 from ..dd.decomposition import Decomposition
 from ..dd.interface import Interface
-from ..solvers import SparseCholesky, Submatrix
+from ..solvers import SparseCholesky, Submatrix, block_cholesky
 from ..solvers.cholmod_native import SimplicialCholesky
 from ..solvers.factory import factorize_local
 from ..solvers.gather import pattern_of, sharing_vertex_level
@@ -253,6 +253,9 @@ def _phi_rows(local: sp.csr_matrix, blocks: np.ndarray, d: int, ncp: int):
     return R if d == 1 else R.tobsr((d, d))
 
 
+_REFACTORED = (SparseCholesky, SimplicialCholesky, block_cholesky.BlockCholesky)   # factors that refactor in place
+
+
 class _Group:
     """The interior dofs of some subdomains, their A_II and A_IΓ gathers and A_II's factorization."""
 
@@ -261,6 +264,7 @@ class _Group:
         self.interior, self.sub = interior, sub
         self.ordering = "natural" if ordered else None  # interior rows already in a fill-reducing order
         self._shared: dict = {}   # the interior rows' entries, found once for both gathers
+        self.offsets = offsets
         self.A_II = Submatrix(interior, interior, n, self._shared, offsets)
         self.A_IG = Submatrix(interior, gamma, n, self._shared, offsets)
         self.factor = None
@@ -271,25 +275,27 @@ class _Group:
         analysis still applies, for a :meth:`refactor` that may then run on another thread."""
         self._same = self.A_II.renew(A)[1]
 
-    def refactor(self, A):
+    def refactor(self, A, block_dtype=None):
+        """A_II's factor for A's numbers; by dense vertex blocks in ``block_dtype`` where it applies."""
         if self._same is None:
             self.prepare(A)
         A_II = self.A_II(A)
         same, self._same = self._same, None
-        if isinstance(self.factor, (SparseCholesky, SimplicialCholesky)) and same:
+        if same and isinstance(self.factor, _REFACTORED) and getattr(self.factor, "dtype", None) in (None, block_dtype):
             self.factor.refactor(A_II)  # same pattern: numbers only (the analysis is kept by release)
         else:   # simplicial where CHOLMOD would choose it: its solves then run on the local threads
-            self.factor = factorize_local(A_II, "the interior matrix A_II", natural=self.ordering == "natural")
+            self.factor = factorize_local(A_II, "the interior matrix A_II", natural=self.ordering == "natural",
+                                          block=block_cholesky.vertex_block(self.offsets), block_dtype=block_dtype)
 
     def solve(self, B: np.ndarray) -> np.ndarray:
         """A_II⁻¹ B (F-ordered n_I × k), the columns split over the local threads where the factor allows."""
-        if isinstance(self.factor, SimplicialCholesky):
+        if isinstance(self.factor, (SimplicialCholesky, block_cholesky.BlockCholesky)):
             return self.factor.solve(B, local_threads())
         return self.factor(B)
 
     def release(self) -> None:
         """Drop the factor's numbers and the gathers' positions; keep the symbolic analysis."""
-        if isinstance(self.factor, (SparseCholesky, SimplicialCholesky)):
+        if isinstance(self.factor, _REFACTORED):
             self.factor.release_numeric()
         else:
             self.factor = None
@@ -473,7 +479,14 @@ class HarmonicExtension:
         dtype = np.int32 if gplan["K"] * nI < 2**31 - 1 else np.int64
         return (plan["local_k"][at] * np.int64(nI) + rows).astype(dtype)
 
-    def _start_factorizations(self, A) -> list | None:
+    @staticmethod
+    def _factor_dtype(single: bool):
+        """The interior factors' precision where they are made by vertex blocks (None: CHOLMOD's):
+        for a Φ in single precision (:attr:`SINGLE_FROM`), which needs no more from its extension,
+        :data:`.block_cholesky.PRECISION`."""
+        return block_cholesky.PRECISION if single else None
+
+    def _start_factorizations(self, A, dtype) -> list | None:
         """The groups' A_II gathered and factorized side by side on the local threads (CHOLMOD holds
         no GIL; lawnmower 1000x1000: 1.9 -> 1.1 s), each group's positions on its thread too (one
         group's beside another's factorization): all interior factors at once, as the memory estimate
@@ -481,7 +494,7 @@ class HarmonicExtension:
         if len(self.groups) <= 1 or on_local_thread():
             return None
         pool = local_threads()
-        return [pool.submit(group.refactor, A) for group in self.groups]
+        return [pool.submit(group.refactor, A, dtype) for group in self.groups]
 
     def _extend(self, group: _Group, A_IG: sp.csr_matrix, Phi_G: sp.csr_matrix, plan: dict, gplan: dict,
                 data: np.ndarray) -> None:
@@ -551,9 +564,11 @@ class HarmonicExtension:
                 self._cached = None
                 frozen = not any(a.flags.writeable for a in arrays)
                 P = self._make_groups(col_subdomains)
+                # Φ's entries: each interior row holds its subdomain's columns (the plan's count)
+                single = int(np.diff(P.indptr)[self.sub].sum()) + len(gamma_vals) >= self.SINGLE_FROM
                 # a new plan: the groups' factorizations start now and run while the rest of the
                 # plan is made (1M 2D poses: 0.36 s on this thread)
-                started = self._start_factorizations(A)
+                started = self._start_factorizations(A, self._factor_dtype(single))
                 try:
                     plan = self._plan(gamma_rows, gamma_cols, col_subdomains, P)
                 except BaseException:
@@ -563,6 +578,7 @@ class HarmonicExtension:
                 self._cached = cached = (signature, plan, pattern_of(A), arrays if frozen else None)
             plan = cached[1]
             dtype = np.float32 if len(plan["indices"]) >= self.SINGLE_FROM else np.float64
+            factor_dtype = self._factor_dtype(dtype == np.float32)
             reuse = (recycle is not None and recycle.plan is plan and recycle.local.data.shape == plan["indices"].shape
                      and recycle.local.data.dtype == dtype)
             data = recycle.local.data if reuse else np.empty(len(plan["indices"]), dtype=dtype)
@@ -571,10 +587,10 @@ class HarmonicExtension:
                                   shape=(len(self.gamma), nc))
             side_by_side = len(self.groups) > 1 and not on_local_thread()
             if side_by_side:
-                wait_all(started if started is not None else self._start_factorizations(A))
+                wait_all(started if started is not None else self._start_factorizations(A, factor_dtype))
             for group, gplan in zip(self.groups, plan["groups"]):
                 if not side_by_side:
-                    group.refactor(A)
+                    group.refactor(A, factor_dtype)
                 self._extend(group, group.A_IG(A), Phi_G, plan, gplan, data)
                 if not self.keep_factors:  # the next refactor finds the gathers' positions again
                     group.release()

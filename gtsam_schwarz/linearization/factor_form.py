@@ -9,38 +9,10 @@ H_ij x_j and H_ijᵀ x_i: at 1M 2D poses one thread takes about as long as scipy
 
 from __future__ import annotations
 
-import importlib.util
-import threading
-
 import numpy as np
 
+from ..util.compiled import AVAILABLE, jit  # noqa: F401 (AVAILABLE: the optimizer's test)
 from ..util.threads import local_threads, on_local_thread
-
-# numba is imported, and the kernels compiled (or loaded from its cache), on their first call: a
-# process that never multiplies in the factor form pays nothing (numba's import: +81 MiB of RSS and
-# ~0.5 s; the first kernel another +51 MiB and ~0.5 s, measured here)
-AVAILABLE = importlib.util.find_spec("numba") is not None
-
-
-class _Kernel:
-    """A function compiled by numba (nopython, GIL released, cached on disk) when first called."""
-
-    def __init__(self, f):
-        self.f, self.compiled = f, None
-        self.__doc__ = f.__doc__
-        self._lock = threading.Lock()   # the warm-up's thread and a first product: one dispatcher
-
-    def __call__(self, *args):
-        if self.compiled is None:
-            with self._lock:
-                if self.compiled is None:
-                    import numba
-                    self.compiled = numba.njit(cache=True, nogil=True)(self.f)
-        return self.compiled(*args)
-
-
-def _jit(f):
-    return _Kernel(f)
 
 
 def warm_up(dims: tuple = (3, 6)) -> None:
@@ -60,7 +32,7 @@ def warm_up(dims: tuple = (3, 6)) -> None:
                         np.zeros((1, 3, 3), np.int64))
 
 
-@_jit
+@jit
 def _diagonal_product(D, symk, dof, x, y):
     """y[dofs of p] = D_p x[dofs of p] for every pose p, its dofs from dof[p] on (D_p: its upper
     triangle's sums, (nsym, n))."""
@@ -74,7 +46,7 @@ def _diagonal_product(D, symk, dof, x, y):
             y[o + a] = s
 
 
-@_jit
+@jit
 def _diagonal_product3(D, symk, x, y):
     """:func:`_diagonal_product` for Pose2s whose dofs are 0..3n−1, unrolled (1M poses: 20 → ~5 ms)."""
     s00, s01, s02, s11, s12, s22 = symk[0, 0], symk[0, 1], symk[0, 2], symk[1, 1], symk[1, 2], symk[2, 2]
@@ -87,7 +59,7 @@ def _diagonal_product3(D, symk, x, y):
         y[o + 2] = h02 * x0 + h12 * x1 + h22 * x2
 
 
-@_jit
+@jit
 def _block_product6(B, ends_i, ends_j, dof, x, y, lo, hi):
     """y += H_ij x_j and H_ijᵀ x_i for the 6×6 blocks f in lo..hi−1: H_ij[a, b] = B[a·6 + b, f] between
     the poses ends_i[f] and ends_j[f], whose dofs start at dof[·] (the loops' bounds are constants, so
@@ -105,7 +77,7 @@ def _block_product6(B, ends_i, ends_j, dof, x, y, lo, hi):
             y[j + a] += t
 
 
-@_jit
+@jit
 def _block_product3(B, ends_i, ends_j, dof, x, y, lo, hi):
     """:func:`_block_product6` for 3×3 blocks, unrolled (at 1M 2D poses 2.5× faster than the loops)."""
     step = dof.shape[0] == 0   # no table: pose p's dofs start at 3p
@@ -127,7 +99,7 @@ def _block_product3(B, ends_i, ends_j, dof, x, y, lo, hi):
         y[j + 2] += b2 * xi0 + b5 * xi1 + b8 * xi2
 
 
-@_jit
+@jit
 def _compose_blocks(positions, out, bptr, rowlen, d, bsrc, btype, coef):
     """out[t] = the source position of H's CSR entry positions[t], for d×d blocks everywhere: block row v
     holds entries [bptr[v]·d², bptr[v+1]·d²), dof row a of it rowlen[v]·d of them, block k's entry (a, b)

@@ -17,7 +17,7 @@ import scipy.sparse as sp
 from ..coarse import coarse_columns
 from ..coarse.extension import column_groups
 from ..dd.index_sets import IndexSets
-from ..solvers import block_diagonal, pattern_cholesky_cost, vertex_pattern
+from ..solvers import block_cholesky, block_diagonal, pattern_cholesky_cost, vertex_pattern
 from ..solvers.memory import FACTOR_BYTES, MATRIX_BYTES, InsufficientMemoryError, available_memory, gib
 from ..util import as_csr
 
@@ -60,6 +60,13 @@ class MemoryEstimate:
         return ", ".join(f"{k} {gib(OVERHEAD * v)}" for k, v in self.parts.items())
 
 
+def _factor_bytes(offsets: np.ndarray, dtype) -> float:
+    """Bytes per predicted entry of a subdomain or interior factor: by vertex blocks in ``dtype`` where
+    every vertex has the same dofs (:mod:`..solvers.block_cholesky`), else CHOLMOD's."""
+    d = block_cholesky.vertex_block(offsets)
+    return block_cholesky.bytes_per_entry(d, dtype) if d and dtype is not None else FACTOR_BYTES
+
+
 def estimate_two_level(M, A, geometry=None) -> MemoryEstimate:
     """The parts of a :class:`~gtsam_schwarz.schwarz.TwoLevelSchwarz`'s memory for matrix A (after
     its ``setup``: interface and extension plan known, nothing numeric yet). With the poses
@@ -90,16 +97,18 @@ def estimate_two_level(M, A, geometry=None) -> MemoryEstimate:
     nnz_A0 = min(float(nc) ** 2, float(np.sum(K_sub.astype(float) ** 2)))  # columns that share a subdomain couple
     dense_coarse = nc <= 4000 and nnz_A0 >= 0.1 * nc * nc  # as solvers.factorize decides
     est = MemoryEstimate(K=K, local=local, nnz_phi=nnz_phi, interior_share=nI / max(n_block, 1))
+    single = nnz_phi >= ext.SINGLE_FROM
     est.parts = {
-        "subdomain factors": FACTOR_BYTES * local.nnz_L,
-        "interior factors": FACTOR_BYTES * local.nnz_L * nI / max(n_block, 1),
+        "subdomain factors": _factor_bytes(offsets, solver.block_dtype(A.nnz) if hasattr(solver, "block_dtype") else None)
+        * local.nnz_L,
+        "interior factors": _factor_bytes(offsets, ext._factor_dtype(single)) * local.nnz_L * nI / max(n_block, 1),
         # the gathered blocks (overlapping, A_II, A_IΓ, A_Γ·) with their source positions and one
         # shared copy of A's pattern
         "gathered matrices": MATRIX_BYTES * (local.nnz_A + A.nnz) + 4.0 * A.nnz,
         # Φ's CSR entries (8 + 4 bytes, or 4 + 4 in single precision) and the extension's kept
         # positions of A_IΓΦ_Γ's entries in the compressed right-hand side (int32, at most one per
         # entry of Φ_I)
-        "coarse basis": (12.0 if nnz_phi >= ext.SINGLE_FROM else 16.0) * nnz_phi,
+        "coarse basis": (12.0 if single else 16.0) * nnz_phi,
         # A₀ and, while it is assembled, A_Γ·Φ for one block of interface rows (K columns each at most)
         # with the rows of Φ that block reads, in double precision (~12 bytes per entry)
         "coarse matrix": (16.0 * nc * nc if dense_coarse else 48.0 * nnz_A0) + 24.0 * ext.a0_block_rows(len(ext.gamma)) * K,

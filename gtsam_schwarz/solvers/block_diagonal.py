@@ -14,7 +14,7 @@ import scipy.sparse as sp
 from ..util import as_csr, vertex_dofs
 from ..util.gathered import entries
 from ..util.threads import WORKERS, local_threads, on_local_thread, run_all
-from . import cholmod_native
+from . import block_cholesky, cholmod_native
 from .base import SingularLocalMatrixError
 from .cost import pattern_ordering, vertex_pattern
 from .factory import factorize_local
@@ -164,6 +164,14 @@ class BlockDiagonalSolver:
     # the next update finds them again. For a caller short of memory whose factors are seldom renewed.
     keep_positions = True
     CHUNK_ENTRIES = 8_000_000  # entries of A in the rows of one chunk (an upper bound of its block's)
+    # for a matrix of BLOCK_FROM entries or more, the chunks' factors by vertex blocks, their numbers in
+    # factor_dtype (env GTSAM_SCHWARZ_BLOCK_FACTOR = float32 / float64 / none); CHOLMOD's simplicial
+    # factors (12 bytes per entry of L) below, or with None. At 1M 2D lawnmower poses the one-level
+    # factors 684 → 272 MiB in single precision, the same CG counts. Below, numba's import (~130 MiB,
+    # ~1 s) is not worth it, and single precision changes CG's counts where they are few and exact: the
+    # paper's bar chain, 4 subdomains, 7 → 9 one-level iterations (a local solve's forward error 6e-6)
+    factor_dtype = block_cholesky.PRECISION
+    BLOCK_FROM = 4_000_000
 
     def __init__(self, sets, A: sp.spmatrix | None = None):
         self.sets = sets
@@ -282,7 +290,7 @@ class BlockDiagonalSolver:
             B = chunk[2](A)
             if not self.keep_positions:
                 chunk[2].forget()
-            self._factorize(chunk, B, new)
+            self._factorize(chunk, B, new, A.nnz)
 
         jobs = [lambda c=c, f=f: job(c, f) for c, f in zip(self._chunks, fresh)]
         if self.threaded and len(jobs) > 1 and not on_local_thread():
@@ -292,22 +300,33 @@ class BlockDiagonalSolver:
                 j()
         return self
 
-    def _factorize(self, chunk: list, B: sp.csr_matrix, fresh: bool) -> None:
+    def _factorize(self, chunk: list, B: sp.csr_matrix, fresh: bool, nnz: int) -> None:
         """Chunk's factor of B: refactorized, or (``fresh``) analysed first. Simplicial factors (CHOLMOD's
         choice for such blocks) go through :mod:`.cholmod_native` where it works, so that
         :meth:`matvec` can solve the chunks on the local threads; the others through scikit-sparse.
         :meth:`update` runs this on the local threads, two chunks at a time (1M 2D poses, the seven
         chunks' refactorization 1.27 s one after the other, 0.8 s two at a time)."""
         if fresh:
-            chunk[3] = factorize_local(B, "a subdomain matrix", natural=bool(self.ordered), dense=False)
+            chunk[3] = self._local_factor(B, nnz)
         else:
             chunk[3].refactor(B)
+
+    def block_dtype(self, nnz: int):
+        """The block factors' precision for a matrix of ``nnz`` entries (None: not by blocks)."""
+        return self.factor_dtype if nnz >= self.BLOCK_FROM else None
+
+    def _local_factor(self, B: sp.csr_matrix, nnz: int):
+        """A chunk's factor: by dense vertex blocks where the sets are whole vertices of one size in a
+        fill-reducing order (:func:`.factorize_local`, in :meth:`block_dtype` of A's ``nnz``)."""
+        return factorize_local(B, "a subdomain matrix", natural=bool(self.ordered), dense=False,
+                               block=block_cholesky.vertex_block(self.sets.offsets) if self.sets.vertices is not None else None,
+                               block_dtype=self.block_dtype(nnz))
 
     def release(self) -> None:
         """Drop the numeric factorizations (to bound the memory); the next :meth:`update` refactorizes
         with the symbolic analyses kept."""
         for chunk in self._chunks or ():
-            if isinstance(chunk[3], (SparseCholesky, cholmod_native.SimplicialCholesky)):
+            if isinstance(chunk[3], (SparseCholesky, cholmod_native.SimplicialCholesky, block_cholesky.BlockCholesky)):
                 chunk[3].release_numeric()
             else:
                 chunk[3] = None
@@ -327,7 +346,7 @@ class BlockDiagonalSolver:
                 yl[lo:hi] = factor.solve(x[indices[lo:hi]])
 
             jobs = [lambda c=c: solve(c[0], c[1], c[3]) for c in self._chunks]
-            if self.threaded and all(isinstance(c[3], cholmod_native.SimplicialCholesky) for c in self._chunks):
+            if self.threaded and all(getattr(c[3], "releases_gil", False) for c in self._chunks):
                 run_all(local_threads(), jobs)   # the chunks' solves side by side (no GIL held)
             else:
                 for job in jobs:

@@ -117,6 +117,7 @@ class SimplicialCholesky:
     whose factorizations and solves release the GIL. ``natural``: K's own order (already
     fill-reducing), else CHOLMOD's default ordering."""
 
+    releases_gil = True   # factorizations and solves run side by side on the local threads
     SUPERNODAL_SWITCH = 40.0  # CHOLMOD's default: supernodal where flops / nnz(L) reach this
 
     def __init__(self, K: sp.spmatrix, what: str = "local matrix", natural: bool = False, factor: bool = True):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from . import cholmod_native
+from . import block_cholesky, cholmod_native
 from .base import LocalSolver
 from .dense import DenseCholesky
 from .sparse import SparseCholesky
@@ -33,13 +33,17 @@ def factorize(K: sp.spmatrix, what: str = "local matrix", ordering: str | None =
 
 
 def factorize_local(K: sp.spmatrix, what: str = "local matrix", natural: bool = False,
-                    dense: bool = True) -> LocalSolver:
+                    dense: bool = True, block: int | None = None, block_dtype=None) -> LocalSolver:
     """:func:`factorize` (``dense=False``: never a dense factor), except that a factor CHOLMOD would
     make simplicial goes through :mod:`.cholmod_native` where it works: its solves hold no GIL, so
-    they can run on the local threads. ``natural``: K is already in a fill-reducing order."""
+    they can run on the local threads. ``natural``: K is already in a fill-reducing order. There,
+    a K made of dense ``block``×``block`` vertex blocks is factorized by blocks, its factor's numbers
+    in ``block_dtype`` (:class:`.BlockCholesky`; None: not by blocks)."""
     n = K.shape[0]
     if n == 0 or (dense and n <= DENSE_FACTOR_MAX and K.nnz >= 0.1 * n * n):
         return factorize(K, what)
+    if natural and block_dtype is not None and block_cholesky.applies(K, block):
+        return block_cholesky.BlockCholesky(K, block, what, dtype=block_dtype)
     if cholmod_native.available():
         factor = cholmod_native.SimplicialCholesky(K, what, natural=natural, factor=False)
         if not factor.supernodal_preferred():

@@ -116,9 +116,10 @@ class Gather:
 
 
 class Submatrix(Gather):
-    """B = A[rows][:, cols] for sorted, distinct ``rows`` and ``cols``: the positions are found from
-    the rows' index ranges and a column map, without a position matrix of all of A (3D 45³: the
-    interior blocks' positions took 2.6 s per rebuild in the low-memory mode, which drops them)."""
+    """B = A[rows][:, cols] for distinct ``rows`` and ``cols`` (in any order: B's columns in theirs,
+    each row's entries sorted): the positions are found from the rows' index ranges and a column map,
+    without a position matrix of all of A (3D 45³: the interior blocks' positions took 2.6 s per
+    rebuild in the low-memory mode, which drops them)."""
 
     def __init__(self, rows: np.ndarray, cols: np.ndarray, n: int, shared: dict | None = None,
                  offsets: np.ndarray | None = None):
@@ -167,7 +168,13 @@ class Submatrix(Gather):
         kept = np.zeros(len(at) + 1, dtype=np.int64)  # entries kept before each position
         np.cumsum(keep, out=kept[1:])
         indptr = kept[ranges].astype(itype)
-        return at[keep], local[keep], indptr, (len(self.rows), self.n_cols)
+        at, local = at[keep], local[keep]
+        if np.any(np.diff(self.cols) < 0):   # columns in an order of their own: each row's entries sorted by it
+            P = sp.csr_matrix((at, local, indptr), shape=(len(self.rows), self.n_cols))
+            P.has_sorted_indices = False
+            P.sort_indices()
+            at, local, indptr = P.data, P.indices, P.indptr
+        return at, local, indptr, (len(self.rows), self.n_cols)
 
 
 def _whole_vertices(rows: np.ndarray, cols: np.ndarray, offsets: np.ndarray | None):

@@ -96,6 +96,16 @@ def test_submatrix_gather_equals_scipy_indexing(two_points):
             assert np.array_equal(B.indptr, ref.indptr) and np.array_equal(B.indices, ref.indices)
             assert np.array_equal(B.data, ref.data)
     assert not shared   # taken by the second
+    # rows and columns in an order of their own (the interiors in a fill-reducing order): each row's
+    # entries still come sorted, as the flag B carries says (a block factor reads it)
+    perm_rows, perm_cols = rng.permutation(rows), rng.permutation(cols)
+    M = sp.csr_matrix(H2)
+    M.sort_indices()
+    B, ref = Submatrix(perm_rows, perm_cols, n)(M), sp.csr_matrix(M[perm_rows][:, perm_cols])
+    ref.sort_indices()
+    assert B.has_sorted_indices and all(np.all(np.diff(B.indices[B.indptr[r]:B.indptr[r + 1]]) > 0) for r in range(B.shape[0]))
+    assert np.array_equal(B.indptr, ref.indptr) and np.array_equal(B.indices, ref.indices)
+    assert np.array_equal(B.data, ref.data)
 
 
 

@@ -101,26 +101,29 @@ def test_optimizer_refuses_with_the_error(survey):
         gs.SchwarzOptimizer(prob.graph, prob.initial, params).optimize()
 
 
-@pytest.mark.parametrize("factor_form", [False, True])
-def test_the_optimizers_prefault_stays_under_its_memory_limit(survey, monkeypatch, factor_form):
+@pytest.mark.parametrize("factor_form, block_factors", [(False, False), (True, False), (True, True)])
+def test_the_optimizers_prefault_stays_under_its_memory_limit(survey, monkeypatch, factor_form, block_factors):
     """The heap the optimizer faults in ahead (64 bytes per entry of H; 12 fewer where H comes in the factor
-    form, without its values and gather index) is bounded by the linear solver's memory limit: the limit
-    goes to populate_ahead as its ceiling."""
+    form, without its values and gather index, and 12 fewer for CG with subdomain factors by blocks in
+    single precision) is bounded by the linear solver's memory limit: the limit goes to populate_ahead as
+    its ceiling."""
     import gtsam_schwarz.nonlinear.optimizer as opt
     from gtsam_schwarz.linearization import factor_form as ff
     from gtsam_schwarz.linearization.native import NativeLinearizer
+    from gtsam_schwarz.solvers import block_cholesky
     if factor_form and not ff.AVAILABLE:
         pytest.skip("numba is not installed")
     asked = []
     monkeypatch.setattr(opt, "populate_ahead", lambda nbytes, ceiling=None: asked.append((nbytes, ceiling)))
     monkeypatch.setattr(opt, "FACTOR_FORM_FROM", 0 if factor_form else 10**12)
+    monkeypatch.setattr(block_cholesky, "PRECISION", np.dtype(np.float32) if block_factors else None)
     prob = survey[0]
-    params = gs.SchwarzParams(method="lm", preconditioner="rgdsw-linear", memory_limit="3M", initialization="file")
+    params = gs.SchwarzParams(method="lm", preconditioner="rgdsw-linear", memory_limit="2M", initialization="file")
     lin = NativeLinearizer(prob.graph, prob.initial)
     gs.SchwarzOptimizer(prob.graph, prob.initial, params, linearizer=lin)
-    per_entry = opt.FRESH_BYTES_PER_ENTRY - (opt.FACTOR_FORM_SAVES_PER_ENTRY if factor_form else 0)
-    assert asked == [(per_entry * lin.pattern.nnz, 3 * 2**20)]
-    assert asked[0][0] > 3 * 2**20   # the request exceeds the limit: populate_ahead caps it
+    per_entry = opt.FRESH_BYTES_PER_ENTRY - (opt.FACTOR_FORM_SAVES_PER_ENTRY if factor_form else 0) - (12 if block_factors else 0)
+    assert asked == [(per_entry * lin.pattern.nnz, 2 * 2**20)]
+    assert asked[0][0] > 2 * 2**20   # the request exceeds the limit: populate_ahead caps it
 
 
 def test_auto_does_not_take_direct_when_its_factor_does_not_fit(survey, monkeypatch):
