@@ -480,7 +480,7 @@ class HarmonicExtension:
         return (plan["local_k"][at] * np.int64(nI) + rows).astype(dtype)
 
     @staticmethod
-    def _factor_dtype(single: bool):
+    def interior_factor_dtype(single: bool):
         """The interior factors' precision where they are made by vertex blocks (None: CHOLMOD's):
         for a Φ in single precision (:attr:`SINGLE_FROM`), which needs no more from its extension,
         :data:`.block_cholesky.PRECISION`."""
@@ -568,7 +568,7 @@ class HarmonicExtension:
                 single = int(np.diff(P.indptr)[self.sub].sum()) + len(gamma_vals) >= self.SINGLE_FROM
                 # a new plan: the groups' factorizations start now and run while the rest of the
                 # plan is made (1M 2D poses: 0.36 s on this thread)
-                started = self._start_factorizations(A, self._factor_dtype(single))
+                started = self._start_factorizations(A, self.interior_factor_dtype(single))
                 try:
                     plan = self._plan(gamma_rows, gamma_cols, col_subdomains, P)
                 except BaseException:
@@ -578,7 +578,7 @@ class HarmonicExtension:
                 self._cached = cached = (signature, plan, pattern_of(A), arrays if frozen else None)
             plan = cached[1]
             dtype = np.float32 if len(plan["indices"]) >= self.SINGLE_FROM else np.float64
-            factor_dtype = self._factor_dtype(dtype == np.float32)
+            factor_dtype = self.interior_factor_dtype(dtype == np.float32)
             reuse = (recycle is not None and recycle.plan is plan and recycle.local.data.shape == plan["indices"].shape
                      and recycle.local.data.dtype == dtype)
             data = recycle.local.data if reuse else np.empty(len(plan["indices"]), dtype=dtype)

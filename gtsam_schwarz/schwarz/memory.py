@@ -101,7 +101,7 @@ def estimate_two_level(M, A, geometry=None) -> MemoryEstimate:
     est.parts = {
         "subdomain factors": _factor_bytes(offsets, solver.block_dtype(A.nnz) if hasattr(solver, "block_dtype") else None)
         * local.nnz_L,
-        "interior factors": _factor_bytes(offsets, ext._factor_dtype(single)) * local.nnz_L * nI / max(n_block, 1),
+        "interior factors": _factor_bytes(offsets, ext.interior_factor_dtype(single)) * local.nnz_L * nI / max(n_block, 1),
         # the gathered blocks (overlapping, A_II, A_IΓ, A_Γ·) with their source positions and one
         # shared copy of A's pattern
         "gathered matrices": MATRIX_BYTES * (local.nnz_A + A.nnz) + 4.0 * A.nnz,
