@@ -16,11 +16,11 @@ they hold no GIL, so two factors are factorized and solved side by side on the l
 
 from __future__ import annotations
 
-import numpy as np
-import scipy.sparse as sp
-
 import os
 import threading
+
+import numpy as np
+import scipy.sparse as sp
 
 from ..util.compiled import AVAILABLE, jit
 from ..util.threads import WORKERS, run_all
@@ -94,7 +94,7 @@ class BlockCholesky:
         if not applies(K, d):
             raise ValueError(f"{what} is not made of whole sorted {d}×{d} blocks")
         self.what, self.d, self.dtype = what, d, np.dtype(dtype)
-        self.n = K.shape[0]
+        self.n, self.nnz_K = K.shape[0], K.nnz
         self.nv = self.n // d
         parent = _elimination_tree(K.indptr, K.indices, d, self.nv)
         self.Lp, self.Li = _block_pattern(K.indptr, K.indices, d, self.nv, parent)   # blocks below the diagonal
@@ -127,11 +127,11 @@ class BlockCholesky:
         K = sp.csr_matrix(K) if not sp.isspmatrix_csr(K) else K
         check_finite(K, self.what)
         d, nv = self.d, self.nv
-        if K.shape[0] != self.n:
-            raise ValueError(f"{self.what}: {K.shape[0]} rows, the analysis had {self.n}")
+        if K.shape[0] != self.n or K.nnz != self.nnz_K:
+            raise ValueError(f"{self.what}: {K.shape[0]} rows and {K.nnz} entries, the analysis had {self.n} and {self.nnz_K}")
+        self._Lx = self._Ld = None   # the old numbers go before the new ones are made
         Lx = np.empty((int(self.Lp[-1]), d, d), dtype=self.dtype)
         Ld = np.empty((nv, d, d), dtype=self.dtype)
-        self._Lx = self._Ld = None
         failed = _factorize(K.indptr, K.indices, K.data, d, self.Lp, self.Li, Lx, Ld)
         if failed:
             raise SingularLocalMatrixError(f"{self.what} is not positive definite (block {failed - 1})")

@@ -99,6 +99,10 @@ def test_refactor_with_new_numbers_equals_a_fresh_factor():
         F.solve(b)
     F.refactor(A)
     np.testing.assert_allclose(F.solve(b), np.linalg.solve(A.toarray(), b), rtol=1e-10)
+    other = block_matrix(80, 3, seed=9)   # another pattern: refused, not factorized on the analysed one
+    assert other.nnz != A.nnz
+    with pytest.raises(ValueError, match="the analysis had"):
+        F.refactor(other)
 
 
 def test_a_matrix_that_is_not_positive_definite_or_not_finite_is_refused():
