@@ -42,10 +42,12 @@ class LinearSolver:
     # whether H may come as a GatheredCSR (values in the linearizer's source array): the solver reads
     # it only by products and gathers, never factorizes it whole
     takes_gathered = False
-    # bytes per entry of H that a run with this solver touches fewer than the optimizer's prefault
-    # assumes (FRESH_BYTES_PER_ENTRY)
-    fresh_saved_per_entry = 0
     reason = ""  # why (for "auto": the predicted costs)
+
+    def fresh_saved_per_entry(self, nnz: int) -> int:
+        """Bytes per entry of an H of ``nnz`` entries that a run with this solver touches fewer than the
+        optimizer's prefault assumes (FRESH_BYTES_PER_ENTRY)."""
+        return 0
 
     def solve(self, H: sp.csr_matrix, rhs: np.ndarray, tol: float, geometry: Geometry,
               decrement_tol: float | None = None, decrement_left: float | None = None) -> SolveResult:
@@ -189,13 +191,15 @@ class PreconditionedCG(LinearSolver):
     """
 
     takes_gathered = True
+    own_factors = True   # the subdomain factors are this package's (BlockDiagonalSolver), not a backend's
 
-    @property
-    def fresh_saved_per_entry(self) -> int:
-        """The subdomain factors by blocks in single precision hold ~4.4 bytes per entry of L against
-        CHOLMOD's 12: at 1M 2D lawnmower poses (nnz(L) ≈ 1.3·nnz(H)) the one-level factors 684 → 272 MiB
-        and the interior factors 427 → ~160 MiB, the run's own peak ~12 bytes per entry of H lower."""
-        return 12 if block_cholesky.PRECISION == np.float32 else 0
+    def fresh_saved_per_entry(self, nnz: int) -> int:
+        """The subdomain factors by blocks in single precision (from BlockDiagonalSolver.BLOCK_FROM
+        entries) hold ~4.4 bytes per entry of L against CHOLMOD's 12: at 1M 2D lawnmower poses
+        (nnz(L) ≈ 1.3·nnz(H)) the one-level factors 684 → 272 MiB and the interior factors 427 → ~160
+        MiB, the run's own peak ~12 bytes per entry of H lower."""
+        single = BlockDiagonalSolver.factor_dtype == np.float32 and nnz >= BlockDiagonalSolver.BLOCK_FROM
+        return 12 if single and self.own_factors else 0
 
     def __init__(self, params: LinearSolverParams, offsets: np.ndarray, translation_mask: np.ndarray):
         self.params = params
@@ -231,7 +235,7 @@ class PreconditionedCG(LinearSolver):
         ``AHEAD_FROM`` vertices; :meth:`_decompose` takes the result)."""
         if self.decomposition is not None or self._decomposing is not None or vertices.shape[0] < self.AHEAD_FROM:
             return
-        if nnz >= BlockDiagonalSolver.BLOCK_FROM and self.choice not in ("none", "jacobi", "block-jacobi"):
+        if self.own_factors and nnz >= BlockDiagonalSolver.BLOCK_FROM and self.choice not in ("none", "jacobi", "block-jacobi"):
             # the subdomain factors' kernels, loaded on a thread of their own before the first build
             block_cholesky.warm_up_later(block_cholesky.vertex_block(self.offsets), BlockDiagonalSolver.factor_dtype)
         structure = GraphStructure.from_vertex_pattern(vertices, self.offsets)
@@ -570,9 +574,8 @@ class AutoSolver(LinearSolver):
     def takes_gathered(self) -> bool:
         return self.chosen is not None and self.chosen.takes_gathered
 
-    @property
-    def fresh_saved_per_entry(self) -> int:
-        return self.chosen.fresh_saved_per_entry if self.chosen is not None else 0
+    def fresh_saved_per_entry(self, nnz: int) -> int:
+        return self.chosen.fresh_saved_per_entry(nnz) if self.chosen is not None else 0
 
     def choose(self, H, geometry: Geometry | None = None) -> LinearSolver:
         """Predict both costs and keep the cheaper solver (its name in ``choice``, why in ``reason``).

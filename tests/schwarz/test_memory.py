@@ -110,13 +110,14 @@ def test_the_optimizers_prefault_stays_under_its_memory_limit(survey, monkeypatc
     import gtsam_schwarz.nonlinear.optimizer as opt
     from gtsam_schwarz.linearization import factor_form as ff
     from gtsam_schwarz.linearization.native import NativeLinearizer
-    from gtsam_schwarz.solvers import block_cholesky
+    from gtsam_schwarz.solvers import BlockDiagonalSolver
     if factor_form and not ff.AVAILABLE:
         pytest.skip("numba is not installed")
     asked = []
     monkeypatch.setattr(opt, "populate_ahead", lambda nbytes, ceiling=None: asked.append((nbytes, ceiling)))
     monkeypatch.setattr(opt, "FACTOR_FORM_FROM", 0 if factor_form else 10**12)
-    monkeypatch.setattr(block_cholesky, "PRECISION", np.dtype(np.float32) if block_factors else None)
+    monkeypatch.setattr(BlockDiagonalSolver, "factor_dtype", np.dtype(np.float32))
+    monkeypatch.setattr(BlockDiagonalSolver, "BLOCK_FROM", 0 if block_factors else 10**12)   # this H's size on either side
     prob = survey[0]
     params = gs.SchwarzParams(method="lm", preconditioner="rgdsw-linear", memory_limit="2M", initialization="file")
     lin = NativeLinearizer(prob.graph, prob.initial)

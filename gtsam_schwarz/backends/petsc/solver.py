@@ -136,6 +136,7 @@ class PetscSchwarzSolver(PreconditionedCG):
     about 20× cheaper on M3500) or "galerkin" (PCMG's PtAP, PCMGSetGalerkin)."""
 
     takes_gathered = False   # H is copied into PETSc's matrix whole
+    own_factors = False   # the subdomain factors are PETSc's
 
     def __init__(self, params: LinearSolverParams, offsets: np.ndarray, translation_mask: np.ndarray,
                  comm=None, local_solver: str = "auto", options: dict | None = None,
