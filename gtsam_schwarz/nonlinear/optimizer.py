@@ -76,7 +76,8 @@ class SchwarzOptimizer:
             nnz = linearizer.pattern.nnz
         if nnz is not None:   # at most a share of what the linear solver may use (its memory limit)
             limit = available_memory(self.nonlinear_params.linear_solver.memory_limit)
-            fresh = (FRESH_BYTES_PER_ENTRY - (FACTOR_FORM_SAVES_PER_ENTRY if self._factor_form() else 0)
+            # (with the automatic choice still open, what its Schwarz candidate would touch)
+            fresh = (FRESH_BYTES_PER_ENTRY - (FACTOR_FORM_SAVES_PER_ENTRY if self._factor_form(expected=True) else 0)
                      - self.linear_solver.fresh_saved_per_entry(nnz))
             populate_ahead(fresh * nnz, ceiling=limit)
         if self._factor_form(expected=True) and hasattr(linearizer, "prepare_factor_form"):

@@ -101,12 +101,15 @@ def test_optimizer_refuses_with_the_error(survey):
         gs.SchwarzOptimizer(prob.graph, prob.initial, params).optimize()
 
 
-@pytest.mark.parametrize("factor_form, block_factors", [(False, False), (True, False), (True, True)])
-def test_the_optimizers_prefault_stays_under_its_memory_limit(survey, monkeypatch, factor_form, block_factors):
+@pytest.mark.parametrize("preconditioner, factor_form, block_factors",
+                         [("rgdsw-linear", False, False), ("rgdsw-linear", True, False), ("rgdsw-linear", True, True),
+                          ("auto", True, True), ("direct", True, True)])
+def test_the_optimizers_prefault_stays_under_its_memory_limit(survey, monkeypatch, preconditioner, factor_form,
+                                                              block_factors):
     """The heap the optimizer faults in ahead (64 bytes per entry of H; 12 fewer where H comes in the factor
     form, without its values and gather index, and 12 fewer for CG with subdomain factors by blocks in
-    single precision) is bounded by the linear solver's memory limit: the limit goes to populate_ahead as
-    its ceiling."""
+    single precision; for `auto` before its choice, what its Schwarz candidate would take; for direct 64) is
+    bounded by the linear solver's memory limit: the limit goes to populate_ahead as its ceiling."""
     import gtsam_schwarz.nonlinear.optimizer as opt
     from gtsam_schwarz.linearization import factor_form as ff
     from gtsam_schwarz.linearization.native import NativeLinearizer
@@ -119,10 +122,12 @@ def test_the_optimizers_prefault_stays_under_its_memory_limit(survey, monkeypatc
     monkeypatch.setattr(BlockDiagonalSolver, "factor_dtype", np.dtype(np.float32))
     monkeypatch.setattr(BlockDiagonalSolver, "BLOCK_FROM", 0 if block_factors else 10**12)   # this H's size on either side
     prob = survey[0]
-    params = gs.SchwarzParams(method="lm", preconditioner="rgdsw-linear", memory_limit="2M", initialization="file")
+    params = gs.SchwarzParams(method="lm", preconditioner=preconditioner, memory_limit="2M", initialization="file")
     lin = NativeLinearizer(prob.graph, prob.initial)
     gs.SchwarzOptimizer(prob.graph, prob.initial, params, linearizer=lin)
     per_entry = opt.FRESH_BYTES_PER_ENTRY - (opt.FACTOR_FORM_SAVES_PER_ENTRY if factor_form else 0) - (12 if block_factors else 0)
+    if preconditioner == "direct":
+        per_entry = opt.FRESH_BYTES_PER_ENTRY
     assert asked == [(per_entry * lin.pattern.nnz, 2 * 2**20)]
     assert asked[0][0] > 2 * 2**20   # the request exceeds the limit: populate_ahead caps it
 
