@@ -14,9 +14,8 @@ import scipy.sparse as sp
 
 from ..dd.decomposition import Decomposition
 from ..dd.interface import Interface
-from ..solvers import SparseCholesky, Submatrix, block_cholesky
-from ..solvers.cholmod_native import SimplicialCholesky
-from ..solvers.factory import factorize_local
+from ..solvers import Submatrix, block_cholesky
+from ..solvers.factory import KEEPS_ANALYSIS, factorize_local
 from ..solvers.gather import pattern_of, sharing_vertex_level
 from ..util import vertex_dofs
 from ..util.gathered import entries
@@ -253,9 +252,6 @@ def _phi_rows(local: sp.csr_matrix, blocks: np.ndarray, d: int, ncp: int):
     return R if d == 1 else R.tobsr((d, d))
 
 
-_REFACTORED = (SparseCholesky, SimplicialCholesky, block_cholesky.BlockCholesky)   # factors that refactor in place
-
-
 class _Group:
     """The interior dofs of some subdomains, their A_II and A_IΓ gathers and A_II's factorization."""
 
@@ -281,7 +277,7 @@ class _Group:
             self.prepare(A)
         A_II = self.A_II(A)
         same, self._same = self._same, None
-        if same and isinstance(self.factor, _REFACTORED) and getattr(self.factor, "dtype", None) in (None, block_dtype):
+        if same and isinstance(self.factor, KEEPS_ANALYSIS) and getattr(self.factor, "dtype", None) in (None, block_dtype):
             self.factor.refactor(A_II)  # same pattern: numbers only (the analysis is kept by release)
         else:   # simplicial where CHOLMOD would choose it: its solves then run on the local threads
             self.factor = factorize_local(A_II, "the interior matrix A_II", natural=self.ordering == "natural",
@@ -289,13 +285,13 @@ class _Group:
 
     def solve(self, B: np.ndarray) -> np.ndarray:
         """A_II⁻¹ B (F-ordered n_I × k), the columns split over the local threads where the factor allows."""
-        if isinstance(self.factor, (SimplicialCholesky, block_cholesky.BlockCholesky)):
+        if getattr(self.factor, "releases_gil", False):
             return self.factor.solve(B, local_threads())
         return self.factor(B)
 
     def release(self) -> None:
         """Drop the factor's numbers and the gathers' positions; keep the symbolic analysis."""
-        if isinstance(self.factor, _REFACTORED):
+        if isinstance(self.factor, KEEPS_ANALYSIS):
             self.factor.release_numeric()
         else:
             self.factor = None

@@ -14,12 +14,11 @@ import scipy.sparse as sp
 from ..util import as_csr, vertex_dofs
 from ..util.gathered import entries
 from ..util.threads import WORKERS, local_threads, on_local_thread, run_all
-from . import block_cholesky, cholmod_native
+from . import block_cholesky
 from .base import SingularLocalMatrixError
 from .cost import pattern_ordering, vertex_pattern
-from .factory import factorize_local
+from .factory import KEEPS_ANALYSIS, factorize_local
 from .gather import Gather, block_positions, vertex_level, sharing_vertex_level
-from .sparse import SparseCholesky
 
 
 def block_diagonal(A: sp.spmatrix, sets) -> sp.csr_matrix:
@@ -326,7 +325,7 @@ class BlockDiagonalSolver:
         """Drop the numeric factorizations (to bound the memory); the next :meth:`update` refactorizes
         with the symbolic analyses kept."""
         for chunk in self._chunks or ():
-            if isinstance(chunk[3], (SparseCholesky, cholmod_native.SimplicialCholesky, block_cholesky.BlockCholesky)):
+            if isinstance(chunk[3], KEEPS_ANALYSIS):
                 chunk[3].release_numeric()
             else:
                 chunk[3] = None

@@ -10,6 +10,8 @@ from .base import LocalSolver
 from .dense import DenseCholesky
 from .sparse import SparseCholesky
 
+# local factors that keep their symbolic analysis: refactor(K) for new numbers, release_numeric()
+KEEPS_ANALYSIS = (SparseCholesky, cholmod_native.SimplicialCholesky, block_cholesky.BlockCholesky)
 DENSE_FACTOR_MAX = 4000  # a matrix this small and at least 10 % full is factorized densely
 
 
